@@ -1,0 +1,224 @@
+"""Rendering the robot with pybullet: one client per process, and a pool for batches.
+
+Poses are camera-from-base in OpenCV axes (x right, y down, z forward); intrinsics are
+pixel-centre OpenCV intrinsics. On a machine with a GPU the EGL hardware renderer is used,
+otherwise pybullet's CPU TinyRenderer.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as pb
+
+from monose3.errors import Monose3Error
+from monose3.robot import RobotModel, RobotSpec
+
+NEAR, FAR = 0.01, 30.0
+# OpenCV camera axes -> OpenGL camera axes (y up, z backward).
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """pybullet light settings; the defaults are a neutral studio light."""
+
+    direction: tuple[float, float, float] = (1.0, 1.0, 2.0)
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    ambient: float = 0.6
+    diffuse: float = 0.5
+    specular: float = 0.2
+
+
+@dataclass(frozen=True)
+class RenderJob:
+    """One render: joints in the model's joint order, camera-from-base 4x4, K 3x3, (width, height)."""
+
+    joints: np.ndarray
+    pose: np.ndarray
+    K: np.ndarray
+    size: tuple[int, int]
+    lighting: Lighting = Lighting()
+
+
+def projection_matrix(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """OpenGL projection whose NDC maps exactly onto OpenCV pixel centres of ``K``.
+
+    Pixel u (centre at integer u) covers NDC x in [2u/W - 1, 2(u+1)/W - 1], hence the +0.5.
+    """
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    return np.array(
+        [
+            [2 * fx / width, 0.0, 1.0 - 2.0 * (cx + 0.5) / width, 0.0],
+            [0.0, 2 * fy / height, 2.0 * (cy + 0.5) / height - 1.0, 0.0],
+            [0.0, 0.0, -(FAR + NEAR) / (FAR - NEAR), -2.0 * FAR * NEAR / (FAR - NEAR)],
+            [0.0, 0.0, -1.0, 0.0],
+        ]
+    )
+
+
+def _egl_available() -> bool:
+    try:
+        import torch
+
+        return torch.cuda.is_available()
+    except ImportError:  # pragma: no cover - torch is a dependency
+        return False
+
+
+class Renderer:
+    """A pybullet client holding one robot. Not thread-safe; one per process."""
+
+    def __init__(self, robot: str | RobotSpec | RobotModel = "panda", backend: str = "auto"):
+        self.model = robot if isinstance(robot, RobotModel) else RobotModel(robot)
+        self.client = pb.connect(pb.DIRECT)
+        self.hardware = backend == "egl" or (backend == "auto" and _egl_available())
+        if self.hardware:
+            self._load_egl()
+        self.body = pb.loadURDF(self.model.spec.urdf, useFixedBase=True, physicsClientId=self.client)
+        self._joint_ids = {}
+        for i in range(pb.getNumJoints(self.body, physicsClientId=self.client)):
+            info = pb.getJointInfo(self.body, i, physicsClientId=self.client)
+            self._joint_ids[info[1].decode()] = i
+        self._base_offset = self._root_link_offset()
+
+    def _load_egl(self) -> None:
+        import pkgutil
+
+        egl = pkgutil.get_loader("eglRenderer")
+        if egl is None or pb.loadPlugin(egl.get_filename(), "_eglRendererPlugin", physicsClientId=self.client) < 0:
+            self.hardware = False
+
+    def _root_link_offset(self) -> np.ndarray:
+        """World pose of the URDF root link: pybullet's base pose is the base's inertial frame."""
+        pos, orn = pb.getBasePositionAndOrientation(self.body, physicsClientId=self.client)
+        inertial = pb.getDynamicsInfo(self.body, -1, physicsClientId=self.client)
+        inv_pos, inv_orn = pb.invertTransform(inertial[3], inertial[4])
+        pos, orn = pb.multiplyTransforms(pos, orn, inv_pos, inv_orn)
+        pose = np.eye(4)
+        pose[:3, :3] = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        pose[:3, 3] = pos
+        return pose
+
+    def set_joints(self, joints: np.ndarray) -> None:
+        values = dict(zip(self.model.joint_names, joints, strict=True))
+        for name, j in self.model._mimic.items():
+            values[name] = values[j.mimic] * j.multiplier + j.offset
+        for name, value in values.items():
+            pb.resetJointState(self.body, self._joint_ids[name], float(value), physicsClientId=self.client)
+
+    def link_world_poses(self) -> dict[str, np.ndarray]:
+        """pybullet's own link frames, expressed relative to the root link (used by tests)."""
+        base_inv = np.linalg.inv(self._base_offset)
+        out = {self.model.root: np.eye(4)}
+        for i in range(pb.getNumJoints(self.body, physicsClientId=self.client)):
+            st = pb.getLinkState(self.body, i, computeForwardKinematics=True, physicsClientId=self.client)
+            pose = np.eye(4)
+            pose[:3, :3] = np.array(pb.getMatrixFromQuaternion(st[5])).reshape(3, 3)
+            pose[:3, 3] = st[4]
+            name = pb.getJointInfo(self.body, i, physicsClientId=self.client)[12].decode()
+            out[name] = base_inv @ pose
+        return out
+
+    def render(self, job: RenderJob) -> tuple[np.ndarray, np.ndarray]:
+        """RGB ``[H, W, 3]`` uint8 on black and the robot mask ``[H, W]`` bool."""
+        width, height = job.size
+        self.set_joints(job.joints)
+        cam_from_world = job.pose @ np.linalg.inv(self._base_offset)
+        view = (_CV_TO_GL @ cam_from_world).T.reshape(-1)
+        proj = projection_matrix(job.K, width, height).T.reshape(-1)
+        light = job.lighting
+        _, _, rgba, _, seg = pb.getCameraImage(
+            width,
+            height,
+            viewMatrix=view.tolist(),
+            projectionMatrix=proj.tolist(),
+            lightDirection=list(light.direction),
+            lightColor=list(light.color),
+            lightAmbientCoeff=light.ambient,
+            lightDiffuseCoeff=light.diffuse,
+            lightSpecularCoeff=light.specular,
+            shadow=0,
+            renderer=pb.ER_BULLET_HARDWARE_OPENGL if self.hardware else pb.ER_TINY_RENDERER,
+            physicsClientId=self.client,
+        )
+        rgba = np.asarray(rgba, np.uint8).reshape(height, width, 4)
+        mask = np.asarray(seg).reshape(height, width) >= 0
+        rgb = np.where(mask[..., None], rgba[..., :3], 0).astype(np.uint8)
+        return rgb, mask
+
+    def close(self) -> None:
+        if self.client >= 0:
+            pb.disconnect(physicsClientId=self.client)
+            self.client = -1
+
+
+_WORKER: Renderer | None = None
+
+
+def _init_worker(robot: RobotSpec, backend: str) -> None:
+    global _WORKER
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _WORKER = Renderer(robot, backend)
+
+
+def _render_in_worker(job: RenderJob) -> tuple[np.ndarray, np.ndarray]:
+    assert _WORKER is not None
+    return _WORKER.render(job)
+
+
+class RendererPool:
+    """Renders batches over worker processes, each with its own pybullet client.
+
+    ``workers=0`` renders in the calling process (no start-up cost, one core).
+    """
+
+    def __init__(self, robot: str | RobotSpec = "panda", workers: int | None = None, backend: str = "auto"):
+        spec = robot.spec if isinstance(robot, RobotModel) else robot
+        self.model = RobotModel(spec)
+        self.workers = os.cpu_count() or 1 if workers is None else workers
+        if self.workers == 0:
+            self._local: Renderer | None = Renderer(self.model, backend)
+            self._pool = None
+        else:
+            self._local = None
+            ctx = mp.get_context("spawn")
+            self._pool = ctx.Pool(self.workers, initializer=_init_worker, initargs=(self.model.spec, backend))
+
+    def render(self, jobs: Sequence[RenderJob]) -> list[tuple[np.ndarray, np.ndarray]]:
+        if self._pool is None:
+            return [self._local.render(j) for j in jobs]
+        chunk = max(1, len(jobs) // (4 * self.workers))
+        return self._pool.map(_render_in_worker, jobs, chunksize=chunk)
+
+    def imap(self, jobs: Iterable[RenderJob]) -> Iterable[tuple[np.ndarray, np.ndarray]]:
+        if self._pool is None:
+            return (self._local.render(j) for j in jobs)
+        return self._pool.imap(_render_in_worker, jobs, chunksize=4)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+        if self._local is not None:
+            self._local.close()
+
+    def __enter__(self) -> RendererPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def check_renderer(robot: str = "panda") -> None:
+    """Fail with a clear message when pybullet cannot render here."""
+    try:
+        r = Renderer(robot, backend="tiny")
+        r.close()
+    except pb.error as err:  # pragma: no cover - environment-specific
+        raise Monose3Error(f"pybullet could not start a renderer: {err}; reinstall pybullet") from None

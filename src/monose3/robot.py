@@ -1,0 +1,375 @@
+"""Robot model: URDF kinematics, keypoints and surface points.
+
+The URDF is parsed here (joints, link visuals) and forward kinematics is a batched numpy
+product over the kinematic tree, so the training loss and the metrics never call a
+simulator. The renderer loads the same URDF in pybullet; tests check both agree.
+"""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import pybullet_data
+
+from monose3.errors import Monose3Error
+from monose3.se3 import axis_angle_to_matrix_np, rpy_to_matrix_np
+
+NUM_SURFACE_POINTS = 2000
+
+
+@dataclass(frozen=True)
+class Keypoint:
+    """A named point: the origin of ``link`` shifted by ``offset`` (meters, link frame)."""
+
+    name: str
+    link: str
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """What identifies a robot: its URDF, its keypoints and defaults for optional joints."""
+
+    name: str
+    urdf: str
+    keypoints: tuple[Keypoint, ...]
+    optional_joints: Mapping[str, float] = field(default_factory=dict)
+
+
+def _pybullet_data(rel: str) -> str:
+    return str(Path(pybullet_data.getDataPath()) / rel)
+
+
+PANDA = RobotSpec(
+    name="panda",
+    urdf=_pybullet_data("franka_panda/panda.urdf"),
+    keypoints=tuple(
+        Keypoint(n, n)
+        for n in (
+            "panda_link0",
+            "panda_link2",
+            "panda_link3",
+            "panda_link4",
+            "panda_link6",
+            "panda_link7",
+            "panda_hand",
+        )
+    ),
+    # The gripper is not part of DREAM's annotations; an open-ish default keeps renders honest.
+    optional_joints={"panda_finger_joint1": 0.02, "panda_finger_joint2": 0.02},
+)
+
+KUKA = RobotSpec(
+    name="kuka",
+    urdf=_pybullet_data("kuka_iiwa/model.urdf"),
+    keypoints=tuple(Keypoint(f"lbr_iiwa_link_{i}", f"lbr_iiwa_link_{i}") for i in range(8)),
+)
+
+ROBOTS = {"panda": PANDA, "kuka": KUKA}
+
+
+def spec_from_files(urdf: str | Path, keypoints_json: str | Path, name: str | None = None) -> RobotSpec:
+    """A spec for any URDF. The keypoint file is ``{"keypoints": [{"name", "link", "offset"?}]}``."""
+    urdf, kp_path = Path(urdf), Path(keypoints_json)
+    for p in (urdf, kp_path):
+        if not p.is_file():
+            raise Monose3Error(f"robot file not found: {p} (pass an existing URDF and keypoint JSON)")
+    try:
+        entries = json.loads(kp_path.read_text())["keypoints"]
+        kps = tuple(Keypoint(e["name"], e["link"], tuple(e.get("offset", (0, 0, 0)))) for e in entries)
+    except (KeyError, TypeError, ValueError) as err:
+        raise Monose3Error(
+            f"malformed keypoint spec {kp_path}: {err!r}; expected "
+            '{"keypoints": [{"name": ..., "link": ..., "offset": [x, y, z]}]}'
+        ) from None
+    return RobotSpec(name=name or urdf.stem, urdf=str(urdf), keypoints=kps)
+
+
+def get_spec(robot: str | RobotSpec) -> RobotSpec:
+    """Resolve a robot name ('panda', 'kuka') or pass a spec through."""
+    if isinstance(robot, RobotSpec):
+        return robot
+    if robot not in ROBOTS:
+        raise Monose3Error(f"unknown robot {robot!r}; choose one of {sorted(ROBOTS)} or give a URDF")
+    return ROBOTS[robot]
+
+
+@dataclass
+class _Joint:
+    name: str
+    kind: str
+    parent: str
+    child: str
+    origin: np.ndarray  # 4x4, parent link frame -> joint frame at zero position
+    axis: np.ndarray
+    lower: float
+    upper: float
+    mimic: str | None = None
+    multiplier: float = 1.0
+    offset: float = 0.0
+
+
+@dataclass
+class _Visual:
+    link: str
+    mesh: Path
+    origin: np.ndarray
+    scale: np.ndarray
+
+
+def _origin(elem: ET.Element | None) -> np.ndarray:
+    pose = np.eye(4)
+    if elem is not None:
+        pose[:3, :3] = rpy_to_matrix_np(np.array(elem.get("rpy", "0 0 0").split(), float))
+        pose[:3, 3] = np.array(elem.get("xyz", "0 0 0").split(), float)
+    return pose
+
+
+def _resolve_mesh(filename: str, urdf_dir: Path) -> Path:
+    rel = filename.split("://", 1)[1] if "://" in filename else filename
+    # package://pkg/x resolves against the URDF folder in pybullet's data layout.
+    for cand in (urdf_dir / rel, urdf_dir / rel.split("/", 1)[-1]):
+        if cand.is_file():
+            return cand
+    raise Monose3Error(f"mesh {filename!r} referenced by the URDF not found next to {urdf_dir}")
+
+
+def _parse_urdf(path: Path) -> tuple[str, list[str], list[_Joint], list[_Visual]]:
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError) as err:
+        raise Monose3Error(f"cannot read URDF {path}: {err}") from None
+    links = [link.get("name") for link in root.findall("link")]
+    joints = []
+    for j in root.findall("joint"):
+        limit, axis, mimic = j.find("limit"), j.find("axis"), j.find("mimic")
+        joints.append(
+            _Joint(
+                name=j.get("name"),
+                kind=j.get("type"),
+                parent=j.find("parent").get("link"),
+                child=j.find("child").get("link"),
+                origin=_origin(j.find("origin")),
+                axis=np.array((axis.get("xyz") if axis is not None else "1 0 0").split(), float),
+                lower=float(limit.get("lower", "-inf")) if limit is not None else -np.inf,
+                upper=float(limit.get("upper", "inf")) if limit is not None else np.inf,
+                mimic=mimic.get("joint") if mimic is not None else None,
+                multiplier=float(mimic.get("multiplier", 1)) if mimic is not None else 1.0,
+                offset=float(mimic.get("offset", 0)) if mimic is not None else 0.0,
+            )
+        )
+    children = {j.child for j in joints}
+    roots = [n for n in links if n not in children]
+    if len(roots) != 1:
+        raise Monose3Error(f"URDF {path} must have exactly one root link, found {roots}")
+    visuals = []
+    for link in root.findall("link"):
+        for vis in link.findall("visual"):
+            mesh = vis.find("geometry/mesh")
+            if mesh is None:
+                continue
+            scale = np.array(mesh.get("scale", "1 1 1").split(), float)
+            visuals.append(
+                _Visual(
+                    link=link.get("name"),
+                    mesh=_resolve_mesh(mesh.get("filename"), path.parent),
+                    origin=_origin(vis.find("origin")),
+                    scale=scale,
+                )
+            )
+    return roots[0], links, joints, visuals
+
+
+def load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``[V, 3]`` and triangles ``[F, 3]`` of a Wavefront OBJ (polygons fan-split)."""
+    verts, faces = [], []
+    with open(path) as fh:
+        for line in fh:
+            if line.startswith("v "):
+                verts.append([float(x) for x in line.split()[1:4]])
+            elif line.startswith("f "):
+                idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
+                idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+                faces.extend([idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1))
+    return np.asarray(verts, np.float64), np.asarray(faces, np.int64).reshape(-1, 3)
+
+
+def _sample_surface(verts: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    tri = verts[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    pick = rng.choice(len(faces), size=n, p=area / area.sum())
+    u, v = rng.random((2, n))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    t = tri[pick]
+    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+
+
+class RobotModel:
+    """Kinematics, keypoints and surface points of one robot.
+
+    Joint configurations are mappings ``{name: radians}``; names may carry a ``prefix/``
+    path (DREAM writes ``panda/panda_joint1``), only the last part counts.
+    """
+
+    def __init__(self, robot: str | RobotSpec = "panda"):
+        self.spec = get_spec(robot)
+        self.urdf_path = Path(self.spec.urdf)
+        if not self.urdf_path.is_file():
+            raise Monose3Error(f"URDF not found: {self.urdf_path}")
+        self.root, self.links, self._joints, self._visuals = _parse_urdf(self.urdf_path)
+        self.link_index = {name: i for i, name in enumerate(self.links)}
+        self._order = self._topological_joints()
+        movable = [j for j in self._joints if j.kind in ("revolute", "continuous", "prismatic")]
+        self.joint_names = [j.name for j in movable if j.mimic is None]
+        self._mimic = {j.name: j for j in movable if j.mimic is not None}
+        self._joint_by_name = {j.name: j for j in movable}
+        for kp in self.spec.keypoints:
+            if kp.link not in self.link_index:
+                raise Monose3Error(f"keypoint {kp.name!r} names unknown link {kp.link!r} in {self.urdf_path.name}")
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def required_joints(self) -> list[str]:
+        return [n for n in self.joint_names if n not in self.spec.optional_joints]
+
+    @property
+    def keypoint_names(self) -> list[str]:
+        return [kp.name for kp in self.spec.keypoints]
+
+    def joint_limits(self) -> np.ndarray:
+        """``[n_joints, 2]`` lower/upper limits of the independent joints."""
+        return np.array([[self._joint_by_name[n].lower, self._joint_by_name[n].upper] for n in self.joint_names])
+
+    def _topological_joints(self) -> list[_Joint]:
+        order, frontier = [], [self.root]
+        by_parent: dict[str, list[_Joint]] = {}
+        for j in self._joints:
+            by_parent.setdefault(j.parent, []).append(j)
+        while frontier:
+            link = frontier.pop(0)
+            for j in by_parent.get(link, []):
+                order.append(j)
+                frontier.append(j.child)
+        return order
+
+    # ---- joint configurations -------------------------------------------------------------
+
+    def joint_vector(self, joints: Mapping[str, float] | Sequence[float] | np.ndarray) -> np.ndarray:
+        """Validate a configuration and return it as a vector in ``joint_names`` order.
+
+        A sequence is taken in URDF order: either all independent joints or only the
+        required ones (optional joints take their defaults).
+        """
+        if isinstance(joints, Mapping):
+            given = {str(k).rsplit("/", 1)[-1]: v for k, v in joints.items()}
+            unknown = sorted(set(given) - set(self.joint_names) - set(self._mimic))
+            if unknown:
+                raise Monose3Error(f"unknown joint(s) {unknown} for robot {self.name}; expected {self.required_joints}")
+            missing = [n for n in self.required_joints if n not in given]
+            if missing:
+                raise Monose3Error(
+                    f"missing joint(s) {missing} for robot {self.name}; give all of {self.required_joints}"
+                )
+            values = [given.get(n, self.spec.optional_joints.get(n)) for n in self.joint_names]
+        else:
+            values = list(np.asarray(joints, dtype=np.float64).reshape(-1))
+            if len(values) == len(self.required_joints) and len(values) != len(self.joint_names):
+                it = iter(values)
+                values = [
+                    self.spec.optional_joints[n] if n in self.spec.optional_joints else next(it)
+                    for n in self.joint_names
+                ]
+            elif len(values) != len(self.joint_names):
+                raise Monose3Error(
+                    f"got {len(values)} joint values, robot {self.name} has {len(self.required_joints)} "
+                    f"({self.required_joints})"
+                )
+        try:
+            vec = np.asarray(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise Monose3Error(f"joint values must be numbers (radians), got {values}") from None
+        if not np.all(np.isfinite(vec)):
+            bad = [n for n, v in zip(self.joint_names, vec, strict=True) if not np.isfinite(v)]
+            raise Monose3Error(f"joint value(s) for {bad} are NaN or infinite; give finite radians")
+        return vec
+
+    def joint_dict(self, vector: np.ndarray) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.joint_names, vector, strict=True)}
+
+    def random_joints(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``[n, n_joints]`` configurations uniform within the joint limits."""
+        lim = self.joint_limits()
+        lo = np.where(np.isfinite(lim[:, 0]), lim[:, 0], -np.pi)
+        hi = np.where(np.isfinite(lim[:, 1]), lim[:, 1], np.pi)
+        return lo + rng.random((n, len(lo))) * (hi - lo)
+
+    # ---- kinematics -----------------------------------------------------------------------
+
+    def link_poses(self, joints: np.ndarray) -> np.ndarray:
+        """Forward kinematics: ``[B, n_joints]`` vectors to ``[B, n_links, 4, 4]`` base-frame poses."""
+        joints = np.atleast_2d(np.asarray(joints, np.float64))
+        batch = joints.shape[0]
+        value = {n: joints[:, i] for i, n in enumerate(self.joint_names)}
+        for name, j in self._mimic.items():
+            value[name] = value[j.mimic] * j.multiplier + j.offset
+        poses = np.zeros((batch, len(self.links), 4, 4))
+        poses[:, self.link_index[self.root]] = np.eye(4)
+        for j in self._order:
+            motion = np.broadcast_to(np.eye(4), (batch, 4, 4)).copy()
+            if j.kind in ("revolute", "continuous"):
+                motion[:, :3, :3] = axis_angle_to_matrix_np(j.axis / np.linalg.norm(j.axis), value[j.name])
+            elif j.kind == "prismatic":
+                motion[:, :3, 3] = value[j.name][:, None] * j.axis
+            poses[:, self.link_index[j.child]] = poses[:, self.link_index[j.parent]] @ j.origin @ motion
+        return poses
+
+    def keypoints(self, joints: np.ndarray) -> np.ndarray:
+        """``[B, n_keypoints, 3]`` keypoints in the base frame."""
+        idx = [self.link_index[kp.link] for kp in self.spec.keypoints]
+        poses = self.link_poses(joints)[:, idx]
+        offsets = np.array([kp.offset for kp in self.spec.keypoints])
+        return np.einsum("bkij,kj->bki", poses[..., :3, :3], offsets) + poses[..., :3, 3]
+
+    @cached_property
+    def _surface_local(self) -> tuple[np.ndarray, np.ndarray]:
+        """Surface samples in their link frames and the link each belongs to (seed 0)."""
+        rng = np.random.default_rng(0)
+        meshes, areas = [], []
+        for vis in self._visuals:
+            if vis.mesh.suffix.lower() != ".obj":
+                continue
+            verts, faces = load_obj(vis.mesh)
+            verts = verts * vis.scale @ vis.origin[:3, :3].T + vis.origin[:3, 3]
+            tri = verts[faces]
+            areas.append(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+            meshes.append((vis.link, verts, faces))
+        if not meshes:
+            raise Monose3Error(f"URDF {self.urdf_path.name} has no OBJ visual meshes to sample points from")
+        counts = np.floor(np.asarray(areas) / sum(areas) * NUM_SURFACE_POINTS).astype(int)
+        counts[np.argmax(counts)] += NUM_SURFACE_POINTS - counts.sum()
+        pts, link_ids = [], []
+        for (link, verts, faces), n in zip(meshes, counts, strict=True):
+            pts.append(_sample_surface(verts, faces, n, rng))
+            link_ids.append(np.full(n, self.link_index[link]))
+        return np.concatenate(pts), np.concatenate(link_ids)
+
+    def surface_points(self, joints: np.ndarray) -> np.ndarray:
+        """``[B, 2000, 3]`` fixed surface samples of the posed robot in the base frame."""
+        local, link_ids = self._surface_local
+        poses = self.link_poses(joints)[:, link_ids]
+        return np.einsum("bnij,nj->bni", poses[..., :3, :3], local) + poses[..., :3, 3]
+
+    @staticmethod
+    def centroid(points: np.ndarray) -> np.ndarray:
+        """Centre of the axis-aligned bounding box of ``[..., N, 3]`` points (RoboPose's reference point)."""
+        return 0.5 * (points.min(-2) + points.max(-2))

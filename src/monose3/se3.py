@@ -1,0 +1,122 @@
+"""Pure, batched rigid-transform helpers (numpy and torch).
+
+Poses are 4x4 homogeneous matrices ``T_a_b`` mapping points in frame b to frame a.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def gram_schmidt_6d(r6: torch.Tensor) -> torch.Tensor:
+    """6D rotation (two columns, ``[..., 6]`` as r1|r2) to a rotation matrix (Eq. 6).
+
+    u1 = r1/|r1|, u2 = normalise(r2 - (r2.u1) u1), u3 = u1 x u2; the columns are (u1, u2, u3),
+    so the result is a proper rotation for any input whose two columns are not parallel.
+    """
+    r1, r2 = r6[..., :3], r6[..., 3:6]
+    u1 = torch.nn.functional.normalize(r1, dim=-1, eps=1e-8)
+    u2 = r2 - (r2 * u1).sum(-1, keepdim=True) * u1
+    u2 = torch.nn.functional.normalize(u2, dim=-1, eps=1e-8)
+    u3 = torch.linalg.cross(u1, u2, dim=-1)
+    return torch.stack([u1, u2, u3], dim=-1)
+
+
+def rotation_to_6d(rot: torch.Tensor) -> torch.Tensor:
+    """First two columns of ``rot`` (``[..., 3, 3]``) as ``[..., 6]`` (r1|r2), the Eq. 4 layout."""
+    return torch.cat([rot[..., :, 0], rot[..., :, 1]], dim=-1)
+
+
+def make_pose(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
+    """Stack ``[..., 3, 3]`` rotations and ``[..., 3]`` translations into ``[..., 4, 4]`` poses."""
+    pose = torch.zeros(*rot.shape[:-2], 4, 4, dtype=rot.dtype, device=rot.device)
+    pose[..., :3, :3] = rot
+    pose[..., :3, 3] = trans
+    pose[..., 3, 3] = 1.0
+    return pose
+
+
+def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Apply ``[..., 4, 4]`` poses to ``[..., N, 3]`` points."""
+    return points @ pose[..., :3, :3].transpose(-1, -2) + pose[..., None, :3, 3]
+
+
+def euler_xyz_to_matrix(angles: torch.Tensor) -> torch.Tensor:
+    """Rotation from extrinsic XYZ Euler angles ``[..., 3]`` (radians): R = Rz @ Ry @ Rx."""
+    cx, cy, cz = torch.cos(angles).unbind(-1)
+    sx, sy, sz = torch.sin(angles).unbind(-1)
+    one, zero = torch.ones_like(cx), torch.zeros_like(cx)
+    rx = torch.stack([one, zero, zero, zero, cx, -sx, zero, sx, cx], -1)
+    ry = torch.stack([cy, zero, sy, zero, one, zero, -sy, zero, cy], -1)
+    rz = torch.stack([cz, -sz, zero, sz, cz, zero, zero, zero, one], -1)
+    shape = (*angles.shape[:-1], 3, 3)
+    return rz.reshape(shape) @ ry.reshape(shape) @ rx.reshape(shape)
+
+
+def rotation_angle(rot_a: torch.Tensor, rot_b: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle (radians) between ``[..., 3, 3]`` rotations."""
+    rel = rot_a.transpose(-1, -2) @ rot_b
+    cos = (rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0
+    return torch.arccos(cos.clamp(-1.0, 1.0))
+
+
+def rpy_to_matrix_np(rpy: np.ndarray) -> np.ndarray:
+    """URDF roll-pitch-yaw (fixed XYZ axes) to a 3x3 rotation: R = Rz(y) Ry(p) Rx(r)."""
+    return euler_xyz_to_matrix(torch.as_tensor(rpy, dtype=torch.float64)).numpy()
+
+
+def axis_angle_to_matrix_np(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rodrigues: unit ``axis`` (3,) and angles ``[B]`` to rotations ``[B, 3, 3]``."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=np.float64)
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
+def quat_xyzw_to_matrix_np(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) to a 3x3 rotation."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat_xyzw_np(rot: np.ndarray) -> np.ndarray:
+    """3x3 rotation to a unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method)."""
+    m = np.asarray(rot, dtype=np.float64)
+    tr = np.trace(m)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    q = np.array(q)
+    return q if q[3] >= 0 else -q
+
+
+def rigid_fit_np(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares rigid transform T with dst ~ T src (Kabsch/Umeyama, no scale).
+
+    Returns the 4x4 transform and the RMS residual in the points' unit.
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    cov = (dst - mu_d).T @ (src - mu_s)
+    u, _, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt))
+    rot = u @ np.diag([1.0, 1.0, d]) @ vt
+    pose = np.eye(4)
+    pose[:3, :3] = rot
+    pose[:3, 3] = mu_d - rot @ mu_s
+    resid = dst - (src @ rot.T + pose[:3, 3])
+    return pose, float(np.sqrt((resid**2).sum(1).mean()))
