@@ -1,0 +1,71 @@
+"""Checkpoints: written atomically, and checked against the robot and preset on load."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from monose3.config import Config
+from monose3.errors import Monose3Error
+from monose3.network import Denoiser
+
+FORMAT = "monose3-checkpoint-v1"
+
+
+def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
+    """Write ``state`` to ``path`` via a temporary file and an atomic rename, so a crash or
+    ``kill -9`` leaves either the old or the new checkpoint, never a torn one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save({"format": FORMAT, **state}, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise Monose3Error(f"checkpoint not found: {path} (train one with `monose3 train` or omit --checkpoint)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - any unpickling failure means the same to the user
+        raise Monose3Error(
+            f"cannot read checkpoint {path}: {type(err).__name__}; is it a monose3 checkpoint?"
+        ) from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise Monose3Error(f"{path} is not a monose3 checkpoint (expected format {FORMAT})")
+    return state
+
+
+def load_model(
+    path: str | Path, robot: str | None = None, preset: str | None = None, device: str = "cpu"
+) -> tuple[Denoiser, Config]:
+    """The network and its configuration from a checkpoint, in eval mode.
+
+    ``robot``/``preset``, when given, must match what the checkpoint was trained for.
+    """
+    state = read_checkpoint(path)
+    config = Config.from_dict(state["config"])
+    if robot is not None and config.robot != robot:
+        raise Monose3Error(
+            f"checkpoint {Path(path).name} was trained for robot {config.robot!r}, not {robot!r}; "
+            f"use a {robot} checkpoint or --robot {config.robot}"
+        )
+    if preset is not None and config.preset != preset:
+        raise Monose3Error(
+            f"checkpoint {Path(path).name} uses preset {config.preset!r}, not {preset!r}; "
+            f"pass --preset {config.preset} or train a {preset} model"
+        )
+    model = Denoiser(config.network)
+    weights = {k: v.float() for k, v in state["model"].items()}
+    model.load_state_dict(weights)
+    return model.to(device).eval(), config

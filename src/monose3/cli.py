@@ -1,0 +1,47 @@
+"""The ``monose3`` command. Each subcommand lives in its own module, which provides
+``add_arguments(parser)`` and ``run(args) -> int``; user errors print on one line."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from monose3.errors import Monose3Error
+
+COMMANDS = {
+    "demo": ("monose3.demo", "estimate the pose on the bundled sample scene and show the error"),
+    "estimate": ("monose3.api", "estimate camera-from-base from one image, joints and intrinsics"),
+    "calibrate": ("monose3.calibrate", "fuse estimates over many frames from a static camera"),
+    "track": ("monose3.track", "track the pose over a sequence of frames or a video"),
+    "generate": ("monose3.generate", "generate domain-randomised synthetic data in DREAM format"),
+    "train": ("monose3.train", "train the denoising network on DREAM folders"),
+    "evaluate": ("monose3.evaluate", "evaluate a checkpoint on DREAM / RoboKeyGen data (ADD, AUC)"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="monose3", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        mod = importlib.import_module(module)
+        getattr(mod, f"add_{name}_arguments", mod.__dict__.get("add_arguments"))(p)
+        p.set_defaults(_run=getattr(mod, f"run_{name}", mod.__dict__.get("run")))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except Monose3Error as err:
+        print(f"monose3 {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"monose3 {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""Configuration dataclasses and their named presets.
+
+``paper`` follows the paper (ResNet34, 640x480 input, 320x240 render). ``cpu`` is the same
+code path sized to learn something useful in about an hour on a 2-core machine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from typing import Any
+
+from monose3.errors import Monose3Error
+
+
+@dataclass(frozen=True)
+class DiffusionConfig:
+    """The forward process (Sec. III-B) and its schedule (Sec. IV-A)."""
+
+    num_steps: int = 100  # T, linear schedule
+    beta_start: float = 1e-4
+    beta_end: float = 0.02
+    c_z: float = 1.5  # depth normalisation, metres (Eq. 4)
+    # gamma: our reading of the paper's undefined gamma = 3. The translation part of the
+    # normalised pose is multiplied by gamma before diffusion (and divided after), so its
+    # noise is 1/gamma of the rotation part's: rotations spread over SO(3) while positions
+    # stay in the view frustum. gamma = 1 is the plain Eq. 5. See benchmarks/visdiff.py.
+    gamma: float = 3.0
+    noise: str = "visdiff"  # "visdiff" (Eq. 4-7) or "fixper" (RoboPose's fixed perturbation)
+    fixper_rot_std_deg: float = 60.0
+    fixper_trans_std: float = 0.1
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    backbone: str = "resnet34"
+    render_size: tuple[int, int] = (320, 240)  # (w, h) of the render and of the crop
+    input_size: tuple[int, int] = (640, 480)  # (w, h) every input image is brought to
+    time_embedding_dim: int = 4  # C_emb
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    batch_size: int = 16
+    lr: float = 3e-4
+    warmup_steps: int = 500
+    max_steps: int = 300_000
+    grad_clip: float = 10.0
+    checkpoint_every: int = 500
+    log_every: int = 20
+    num_workers: int = 4
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    ddim_steps: int = 5  # K reverse-diffusion steps (Alg. 2)
+    direct_steps: int = 5  # M direct-regression refinements
+    eta: float = 1.0
+    tracking_t: int = 10  # small t for 1-step tracking
+
+
+@dataclass(frozen=True)
+class Config:
+    preset: str = "paper"
+    robot: str = "panda"
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    inference: InferenceConfig = field(default_factory=InferenceConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> Config:
+        return _from_dict(Config, data)
+
+
+def _from_dict(cls: type, data: dict[str, Any]) -> Any:
+    kwargs = {}
+    for f in fields(cls):
+        if f.name not in data:
+            continue
+        value = data[f.name]
+        default = f.default_factory() if callable(f.default_factory) else f.default
+        if is_dataclass(default):
+            value = _from_dict(type(default), value)
+        elif isinstance(default, tuple):
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+PRESETS: dict[str, Config] = {
+    "paper": Config(),
+    "cpu": Config(
+        preset="cpu",
+        network=NetworkConfig(backbone="resnet18", render_size=(128, 96), input_size=(320, 240)),
+        train=TrainConfig(batch_size=16, warmup_steps=200, checkpoint_every=200, num_workers=1),
+    ),
+}
+
+
+def get_preset(name: str, **overrides: Any) -> Config:
+    """A preset by name; ``overrides`` replace top-level fields (e.g. ``robot='kuka'``)."""
+    if name not in PRESETS:
+        raise Monose3Error(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return replace(PRESETS[name], **overrides)
+
+
+def with_section(config: Config, section: str, **values: Any) -> Config:
+    """Copy of ``config`` with fields of one section (``diffusion``, ``train``, ...) replaced."""
+    return replace(config, **{section: replace(getattr(config, section), **values)})

@@ -1,0 +1,48 @@
+"""Render-and-compare inputs (Sec. III-C): the crop around the robot at a pose, the crop's
+intrinsics, the render at that pose and the image crop, pixel-aligned. Shared by training
+and inference."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from monose3.camera import crop_boxes, crop_images, crop_intrinsics, project
+from monose3.render import RenderJob
+from monose3.se3 import transform_points
+
+
+def crop_geometry(
+    pose_ref: torch.Tensor, points_ref: torch.Tensor, K: torch.Tensor, render_size: tuple[int, int]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Crop boxes ``[B, 4]`` and crop intrinsics ``[B, 3, 3]`` for the robot at ``pose_ref``.
+
+    ``pose_ref`` is camera-from-centroid and ``points_ref`` the model points in the centroid
+    frame, so the crop is centred on the reference point's projection (RoboPose's rule).
+    """
+    cam_points = transform_points(pose_ref, points_ref)
+    cam_points = torch.cat([cam_points[..., :2], cam_points[..., 2:].clamp_min(0.05)], -1)
+    center = pose_ref[:, None, :3, 3].clone()
+    center[..., 2] = center[..., 2].clamp_min(0.05)
+    uv = project(cam_points, K)
+    uv_center = project(center, K)[:, 0]
+    boxes = crop_boxes(uv, uv_center, render_size[0] / render_size[1])
+    return boxes, crop_intrinsics(K, boxes, render_size)
+
+
+def image_to_tensor(image: np.ndarray) -> torch.Tensor:
+    """``[H, W, 3]`` uint8 to ``[3, H, W]`` float in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float().div_(255.0)
+
+
+def render_jobs(
+    joints: np.ndarray, pose_base: torch.Tensor, K_crop: torch.Tensor, render_size: tuple[int, int]
+) -> list[RenderJob]:
+    """One render job per row: joints ``[B, n]``, camera-from-base ``[B, 4, 4]``, crop K."""
+    poses, Ks = pose_base.double().cpu().numpy(), K_crop.double().cpu().numpy()
+    return [RenderJob(joints[i], poses[i], Ks[i], render_size) for i in range(len(poses))]
+
+
+def crop_batch(images: torch.Tensor, boxes: torch.Tensor, render_size: tuple[int, int]) -> torch.Tensor:
+    """Crops of the input images ``[B, 3, H, W]`` at ``boxes``, resized to ``render_size``."""
+    return crop_images(images, boxes.to(images.dtype), render_size)

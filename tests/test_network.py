@@ -1,0 +1,81 @@
+import torch
+
+from monose3.config import NetworkConfig
+from monose3.network import (
+    Denoiser,
+    apply_update,
+    disentangled_loss,
+    raw_to_update,
+    timestep_embedding,
+    true_update,
+    update_to_raw,
+)
+from monose3.se3 import euler_xyz_to_matrix, gram_schmidt_6d, make_pose
+
+
+def _poses(n: int, seed: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen))
+    trans = torch.randn(n, 3, generator=gen) * 0.2 + torch.tensor([0.0, 0.0, 1.5])
+    return make_pose(rot, trans)
+
+
+def _crop_K(n: int) -> torch.Tensor:
+    K = torch.tensor([[400.0, 0, 160], [0, 410, 120], [0, 0, 1]])
+    return K.repeat(n, 1, 1)
+
+
+def test_gram_schmidt_gives_proper_rotations():
+    r6 = torch.randn(1000, 6, dtype=torch.float64) * 5
+    rot = gram_schmidt_6d(r6)
+    eye = torch.eye(3, dtype=torch.float64).expand(1000, 3, 3)
+    assert torch.allclose(rot.transpose(1, 2) @ rot, eye, atol=1e-10)
+    assert torch.allclose(torch.det(rot), torch.ones(1000, dtype=torch.float64), atol=1e-10)
+    # The first column keeps r1's direction.
+    assert torch.allclose(rot[:, :, 0], torch.nn.functional.normalize(r6[:, :3], dim=1), atol=1e-10)
+
+
+def test_update_maps_noisy_pose_onto_target_with_true_parameters():
+    h_t, h_0, K = _poses(16, 0), _poses(16, 1), _crop_K(16)
+    v_xy, d_rot, v_z = true_update(h_t, h_0, K)
+    assert torch.allclose(apply_update(h_t, v_xy, d_rot, v_z, K), h_0, atol=1e-5)
+
+
+def test_loss_is_zero_for_the_true_update_and_positive_otherwise():
+    h_t, h_0, K = _poses(8, 2), _poses(8, 3), _crop_K(8)
+    points = torch.randn(8, 200, 3) * 0.3
+    raw = update_to_raw(*true_update(h_t, h_0, K), render_width=320)
+    loss, parts = disentangled_loss(raw, h_t, h_0, K, points, 320)
+    assert loss.item() < 1e-5
+    for key in ("xy", "rot", "z"):
+        wrong = raw.clone()
+        wrong[:, {"xy": 0, "rot": 3, "z": 8}[key]] += 0.2
+        _, bad_parts = disentangled_loss(wrong, h_t, h_0, K, points, 320)
+        # Each part only sees its own prediction (Eq. 10 is disentangled).
+        assert bad_parts[key].item() > 1e-3
+        assert all(bad_parts[k].item() < 1e-5 for k in bad_parts if k != key)
+
+
+def test_zero_output_is_identity_update():
+    v_xy, d_rot, v_z = raw_to_update(torch.zeros(3, 9), 320)
+    h_t, K = _poses(3, 4), _crop_K(3)
+    assert torch.allclose(apply_update(h_t, v_xy, d_rot, v_z, K), h_t, atol=1e-6)
+
+
+def test_denoiser_takes_ten_channels_and_depends_on_t():
+    cfg = NetworkConfig(backbone="resnet18", render_size=(64, 48))
+    net = Denoiser(cfg)
+    assert net.net.conv1.in_channels == 10
+    torch.nn.init.normal_(net.net.fc.weight, std=0.1)
+    net.eval()
+    x = torch.rand(2, 3, 48, 64)
+    out_a = net(x, x, torch.tensor([1, 1]))
+    out_b = net(x, x, torch.tensor([90, 90]))
+    assert out_a.shape == (2, 9)
+    assert not torch.allclose(out_a, out_b)
+
+
+def test_timestep_embedding_is_sinusoidal():
+    emb = timestep_embedding(torch.tensor([0, 10]), 4)
+    assert emb.shape == (2, 4)
+    assert torch.allclose(emb[0], torch.tensor([0.0, 0.0, 1.0, 1.0]))
