@@ -1,0 +1,246 @@
+"""Inference (Alg. 2): RoboPose's initialisation, K timestep-aware DDIM steps (RevDiff),
+M direct-regression steps, the DirectReg baseline and 1-step tracking. Batched over images
+and hypotheses: one render batch and one network call per step."""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from monose3.camera import project, standardize_image
+from monose3.config import Config
+from monose3.diffusion import NoiseSchedule, base_frame, centroid_frame, ddim_step, denormalize_pose, normalize_pose
+from monose3.network import Denoiser, apply_update, raw_to_update
+from monose3.render import RendererPool
+from monose3.robot import RobotModel
+from monose3.se3 import euler_xyz_to_matrix, make_pose
+from monose3.views import crop_batch, crop_geometry, image_to_tensor, render_jobs
+
+# RoboPose's fixed initial orientation (camera-from-reference-point): the robot seen from the front.
+INIT_ROTATION = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)
+INIT_BOX_FRACTION = 3 / 5
+
+
+@dataclass
+class Estimate:
+    """Results for a batch of B images with H hypotheses each (poses are camera-from-base,
+    in the caller's original camera, metres)."""
+
+    poses: np.ndarray  # [B, 4, 4] the chosen estimate (medoid of the hypotheses)
+    hypotheses: np.ndarray  # [B, H, 4, 4]
+    in_view: np.ndarray  # [B] bool: the estimate keeps the robot's centroid in the image, in front
+    spread_mm: np.ndarray  # [B] mean keypoint distance of the hypotheses to the chosen one
+    spread_deg: np.ndarray  # [B] mean rotation angle of the hypotheses to the chosen one
+    history: list[np.ndarray] = field(default_factory=list)  # per step [B, H, 4, 4]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Batch:
+    images: torch.Tensor  # [N, 3, H, W] standardized, one row per hypothesis
+    K: torch.Tensor  # [N, 3, 3] of the standardized image
+    size: torch.Tensor  # [N, 2]
+    joints: np.ndarray  # [N, n]
+    points_ref: torch.Tensor  # [N, P, 3]
+    centroid: torch.Tensor  # [N, 3]
+
+
+class PoseEstimator:
+    """A trained denoiser plus a renderer pool; call :meth:`estimate` or :meth:`track`."""
+
+    def __init__(self, model: Denoiser, config: Config, workers: int | None = 0, device: str = "cpu"):
+        self.model = model.to(device).eval()
+        self.config = config
+        self.device = torch.device(device)
+        self.robot = RobotModel(config.robot)
+        self.schedule = NoiseSchedule(config.diffusion)
+        self.pool = RendererPool(self.robot.spec, workers=workers)
+        self.timings: dict[str, float] = defaultdict(float)
+
+    def close(self) -> None:
+        self.pool.close()
+
+    # ---- inputs ---------------------------------------------------------------------------
+
+    def _prepare(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, hyps: int) -> _Batch:
+        size = self.config.network.input_size
+        std_images, std_K = [], []
+        for img, K in zip(images, Ks, strict=True):
+            im, k = standardize_image(img, np.asarray(K, np.float64), size)
+            std_images.append(image_to_tensor(im))
+            std_K.append(k)
+        joints = np.asarray(joints, np.float64)
+        points = self.robot.surface_points(joints)
+        centroid = self.robot.centroid(points)
+        rep = lambda x: x.repeat_interleave(hyps, 0)  # noqa: E731
+        return _Batch(
+            images=rep(torch.stack(std_images)),
+            K=rep(torch.from_numpy(np.stack(std_K))),
+            size=torch.tensor([size], dtype=torch.float64).repeat(len(images) * hyps, 1),
+            joints=np.repeat(joints, hyps, axis=0),
+            points_ref=rep(torch.from_numpy(points - centroid[:, None])),
+            centroid=rep(torch.from_numpy(centroid)),
+        )
+
+    def initial_poses(self, batch: _Batch) -> torch.Tensor:
+        """RoboPose's identity initialisation (camera-from-centroid): fixed rotation, the robot
+        fitted to a box over the central 3/5 of the image."""
+        n = len(batch.K)
+        rot = INIT_ROTATION.expand(n, 3, 3)
+        pts = batch.points_ref @ rot.transpose(1, 2)
+        extent = pts.amax(1) - pts.amin(1)
+        box = batch.size * INIT_BOX_FRACTION
+        f = torch.stack([batch.K[:, 0, 0], batch.K[:, 1, 1]], 1)
+        z = (f * extent[:, :2] / box).amax(1)
+        center = batch.size / 2 - 0.5
+        xy = (center - batch.K[:, :2, 2]) * z[:, None] / f
+        return make_pose(rot, torch.cat([xy, z[:, None]], 1))
+
+    # ---- one network evaluation -----------------------------------------------------------
+
+    @torch.no_grad()
+    def _predict_x0(self, batch: _Batch, pose_ref: torch.Tensor, t: int) -> torch.Tensor:
+        """The denoiser's H_0 prediction (Eq. 9) at ``pose_ref`` = H_t, camera-from-centroid."""
+        net = self.config.network
+        tick = time.perf_counter()
+        boxes, K_crop = crop_geometry(pose_ref, batch.points_ref, batch.K, net.render_size)
+        self.timings["crop"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        jobs = render_jobs(batch.joints, base_frame(pose_ref, batch.centroid), K_crop, net.render_size)
+        renders = torch.stack([image_to_tensor(rgb) for rgb, _ in self.pool.render(jobs)])
+        self.timings["render"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        crops = crop_batch(batch.images, boxes, net.render_size)
+        self.timings["crop"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
+        raw = self.model(renders.to(self.device), crops.to(self.device), steps).double().cpu()
+        self.timings["network"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
+        out = apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)
+        self.timings["update"] += time.perf_counter() - tick
+        return out
+
+    def _ddim(self, batch: _Batch, pose_ref: torch.Tensor, t: int, t_prev: int, eta: float, gen) -> torch.Tensor:
+        """One timestep-aware reverse step (Alg. 2): predict H_0, then DDIM in the normalised space (Eq. 8)."""
+        x0_pose = self._predict_x0(batch, pose_ref, t)
+        tick = time.perf_counter()
+        c_z = self.config.diffusion.c_z
+        x_t = normalize_pose(pose_ref, batch.K, batch.size, c_z)
+        x_0 = normalize_pose(x0_pose, batch.K, batch.size, c_z)
+        n = len(pose_ref)
+        noise = torch.randn(x_t.shape, generator=gen, dtype=x_t.dtype) if gen is not None else None
+        x_prev = ddim_step(x_t, x_0, torch.full((n,), t), torch.full((n,), t_prev), self.schedule, eta, noise)
+        x_prev[:, 8] = x_prev[:, 8].clamp_min(0.05 - c_z)
+        out = denormalize_pose(x_prev, batch.K, batch.size, c_z)
+        self.timings["update"] += time.perf_counter() - tick
+        return out
+
+    # ---- public API -----------------------------------------------------------------------
+
+    def estimate(
+        self,
+        images: list[np.ndarray],
+        Ks: np.ndarray,
+        joints: np.ndarray,
+        sampler: str = "revdiff",
+        ddim_steps: int | None = None,
+        direct_steps: int | None = None,
+        hypotheses: int = 1,
+        stochastic: bool = False,
+        seed: int = 0,
+        init_poses: np.ndarray | None = None,
+        start_t: int | None = None,
+    ) -> Estimate:
+        """Estimate camera-from-base for each image. ``sampler``: 'revdiff' (K DDIM + M direct
+        steps, the paper) or 'directreg' (K + M direct steps, the baseline). ``stochastic``
+        adds DDIM's noise term and perturbs the initial poses (several chains -> uncertainty).
+        ``init_poses`` ``[B, 4, 4]`` replace RoboPose's initialisation (tracking)."""
+        inf = self.config.inference
+        ddim_steps = inf.ddim_steps if ddim_steps is None else ddim_steps
+        direct_steps = inf.direct_steps if direct_steps is None else direct_steps
+        self.timings = defaultdict(float)
+        start = time.perf_counter()
+        batch = self._prepare(images, Ks, joints, hypotheses)
+        gen = torch.Generator().manual_seed(seed) if stochastic else None
+        if init_poses is None:
+            pose = self.initial_poses(batch)
+        else:
+            # Standardising the image changes K only: a 3D pose means the same in both cameras.
+            init = np.repeat(np.asarray(init_poses, np.float64), hypotheses, 0)
+            pose = centroid_frame(torch.from_numpy(init), batch.centroid)
+        if stochastic:
+            pose = self._perturb(pose, gen)
+        history = [pose]
+        if sampler == "revdiff":
+            steps = self.schedule.ddim_timesteps(ddim_steps, start_t)
+            for i, t in enumerate(steps):
+                t_prev = steps[i + 1] if i + 1 < len(steps) else 0
+                pose = self._ddim(batch, pose, t, t_prev, inf.eta, gen)
+                history.append(pose)
+        elif sampler == "directreg":
+            direct_steps += ddim_steps
+        else:
+            raise ValueError(f"unknown sampler {sampler!r} (revdiff or directreg)")
+        for _ in range(direct_steps):
+            pose = self._predict_x0(batch, pose, 1)
+            history.append(pose)
+        self.timings["total"] = time.perf_counter() - start
+        return self._finish(batch, history, len(images), hypotheses)
+
+    def track(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, previous: np.ndarray) -> Estimate:
+        """1-step tracking: start from the previous estimates and take one step at a small t."""
+        return self.estimate(
+            images,
+            Ks,
+            joints,
+            sampler="revdiff",
+            ddim_steps=1,
+            direct_steps=0,
+            init_poses=previous,
+            start_t=self.config.inference.tracking_t,
+        )
+
+    # ---- helpers --------------------------------------------------------------------------
+
+    def _perturb(self, pose: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+        n = len(pose)
+        rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen, dtype=pose.dtype) * 0.15)
+        out = pose.clone()
+        out[:, :3, :3] = rot @ pose[:, :3, :3]
+        out[:, :3, 3] = pose[:, :3, 3] * (1 + 0.05 * torch.randn(n, 3, generator=gen, dtype=pose.dtype))
+        return out
+
+    def _finish(self, batch: _Batch, history: list[torch.Tensor], n_images: int, hyps: int) -> Estimate:
+        to_base = [base_frame(p, batch.centroid).numpy().reshape(n_images, hyps, 4, 4) for p in history]
+        final = to_base[-1]
+        kps = self.robot.keypoints(batch.joints[::hyps])  # [B, K, 3]
+        chosen, spread_mm, spread_deg = [], [], []
+        for b in range(n_images):
+            cam = np.einsum("hij,kj->hki", final[b, :, :3, :3], kps[b]) + final[b, :, None, :3, 3]
+            dist = np.linalg.norm(cam[:, None] - cam[None], axis=-1).mean(-1)  # [H, H]
+            m = int(np.argmin(dist.sum(1)))
+            chosen.append(final[b, m])
+            spread_mm.append(1000 * dist[m].sum() / max(1, hyps - 1))
+            rel = np.einsum("hji,jk->hik", final[b, :, :3, :3], final[b, m, :3, :3])
+            ang = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+            spread_deg.append(ang.sum() / max(1, hyps - 1))
+        poses = np.stack(chosen)
+        ref = centroid_frame(torch.from_numpy(poses), batch.centroid[::hyps])
+        uv = project(ref[:, None, :3, 3], batch.K[::hyps])[:, 0]
+        size = batch.size[::hyps]
+        in_view = (ref[:, 2, 3] > 0) & (uv >= -0.5).all(1) & (uv <= size - 0.5).all(1)
+        return Estimate(
+            poses=poses,
+            hypotheses=final,
+            in_view=in_view.numpy(),
+            spread_mm=np.asarray(spread_mm),
+            spread_deg=np.asarray(spread_deg),
+            history=to_base,
+            timings=dict(self.timings),
+        )
