@@ -20,19 +20,23 @@ COMMANDS = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s module is imported (torch makes imports slow)."""
     parser = argparse.ArgumentParser(prog="monose3", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
-        mod = importlib.import_module(module)
-        getattr(mod, f"add_{name}_arguments", mod.__dict__.get("add_arguments"))(p)
-        p.set_defaults(_run=getattr(mod, f"run_{name}", mod.__dict__.get("run")))
+        if name == command:
+            mod = importlib.import_module(module)
+            getattr(mod, f"add_{name}_arguments")(p)
+            p.set_defaults(_run=getattr(mod, f"run_{name}"))
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    command = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(command).parse_args(argv)
     try:
         return int(args._run(args) or 0)
     except Monose3Error as err:
