@@ -130,7 +130,14 @@ class Renderer:
         self.set_joints(job.joints)
         cam_from_world = job.pose @ np.linalg.inv(self._base_offset)
         view = (_CV_TO_GL @ cam_from_world).T.reshape(-1)
-        proj = projection_matrix(job.K, width, height).T.reshape(-1)
+        K = np.array(job.K, np.float64)
+        if not self.hardware:
+            # TinyRenderer covers pixel (u, row) when the screen point (u, H-1-row) is inside a
+            # triangle, not the pixel centre (u+0.5, H-row-0.5) as OpenGL does: shift the principal
+            # point by half a pixel so both back-ends follow the OpenCV pixel-centre convention.
+            K[0, 2] -= 0.5
+            K[1, 2] += 0.5
+        proj = projection_matrix(K, width, height).T.reshape(-1)
         light = job.lighting
         _, _, rgba, _, seg = pb.getCameraImage(
             width,

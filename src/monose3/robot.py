@@ -282,7 +282,10 @@ class RobotModel:
                 )
             values = [given.get(n, self.spec.optional_joints.get(n)) for n in self.joint_names]
         else:
-            values = list(np.asarray(joints, dtype=np.float64).reshape(-1))
+            try:
+                values = list(np.asarray(joints, dtype=np.float64).reshape(-1))
+            except (TypeError, ValueError):
+                raise Monose3Error(f"joint values must be numbers (radians), got {joints!r}") from None
             if len(values) == len(self.required_joints) and len(values) != len(self.joint_names):
                 it = iter(values)
                 values = [

@@ -80,6 +80,36 @@ class _Log:
         self.tb.close()
 
 
+def train_step(
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    batch: dict[str, torch.Tensor],
+    config: Config,
+    lr: float,
+    amp=nullcontext,
+    device: torch.device | str = "cpu",
+) -> tuple[float, dict[str, float]]:
+    """One optimiser step of Alg. 1 on a batch from :class:`DenoisingSamples`; returns the loss."""
+    batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    with amp():
+        raw = model(batch["render"], batch["crop"], batch["t"])
+    loss, parts = disentangled_loss(
+        raw.float(),
+        batch["pose_ref_t"],
+        batch["pose_ref_0"],
+        batch["K_crop"],
+        batch["points_ref"],
+        config.network.render_size[0],
+    )
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
+    optimizer.step()
+    return loss.item(), {k: v.item() for k, v in parts.items()}
+
+
 def train(
     config: Config,
     data_dirs: list[str | Path],
@@ -120,42 +150,30 @@ def train(
         prefetch_factor=4 if tc.num_workers > 0 else None,
     )
     log = _Log(out, step) if rank == 0 else None
-    amp = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else nullcontext()
+    amp = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if device.type == "cuda" else nullcontext
     bar = tqdm(total=tc.max_steps, initial=step, desc="train", unit="step", disable=not progress or rank != 0)
     losses: list[float] = []
     tick, seen = time.perf_counter(), 0
-    render_width = config.network.render_size[0]
     for batch in loader:
         if step >= tc.max_steps:
             break
-        batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
         lr = learning_rate(step, config)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        with amp:
-            raw = ddp_model(batch["render"], batch["crop"], batch["t"])
-        loss, parts = disentangled_loss(
-            raw.float(), batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"], render_width
-        )
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
-        optimizer.step()
+        loss, parts = train_step(ddp_model, optimizer, batch, config, lr, amp, device)
         step += 1
         seen += tc.batch_size * world
-        losses.append(loss.item())
+        losses.append(loss)
         bar.update(1)
         if log is not None and (step % tc.log_every == 0 or step == tc.max_steps):
             rate = seen / (time.perf_counter() - tick)
             tick, seen = time.perf_counter(), 0
-            bar.set_postfix(loss=f"{loss.item():.4f}", samples_s=f"{rate:.1f}")
+            bar.set_postfix(loss=f"{loss:.4f}", samples_s=f"{rate:.1f}")
             log.write(
                 {
                     "step": step,
-                    "loss": loss.item(),
-                    "loss_xy": parts["xy"].item(),
-                    "loss_rot": parts["rot"].item(),
-                    "loss_z": parts["z"].item(),
+                    "loss": loss,
+                    "loss_xy": parts["xy"],
+                    "loss_rot": parts["rot"],
+                    "loss_z": parts["z"],
                     "lr": lr,
                     "samples_per_s": rate,
                 }
@@ -193,6 +211,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gamma", type=float, help="translation noise divisor of VisDiff (default 3)")
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--threads", type=int, help="torch CPU threads for the network (default: all cores)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -211,6 +230,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
 
 
 def run_train(args: argparse.Namespace) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
     config = config_from_args(args)
     ckpt = Path(args.out) / CHECKPOINT
     if ckpt.is_file() and not args.resume:

@@ -1,0 +1,653 @@
+"""``monose3 calibrate``: one camera-to-robot extrinsic fused from many frames of a static camera.
+
+A single image gives an estimate a few centimetres off, and now and then a badly wrong one.
+When the camera does not move while the robot goes through many configurations, every
+frame estimates the same transform, so fusing them cancels most of the noise -- provided
+the wrong ones are thrown out first instead of averaged in. The pipeline:
+
+1. estimate every frame (batched; ``chains`` > 1 runs that many stochastic reverse chains per
+   frame, whose disagreement measures the frame's uncertainty);
+2. reject frames whose estimate puts the robot outside the image ("out of view") and, with
+   several chains, those whose chains disagree by more than ``api.UNRELIABLE_MM``
+   ("unreliable chains");
+3. fuse the rest robustly (:mod:`monose3.se3_average`: geodesic L1 median of the rotations,
+   geometric median of the translations), reject frames whose translation or rotation lies
+   beyond ``median + k * 1.4826 * MAD`` of the residuals to that first fusion ("far from
+   consensus"), and fuse the remaining inliers again.
+
+Input folder (``--frames DIR``), one of:
+
+* a DREAM folder (``NNNNNN.json`` + ``NNNNNN.rgb.jpg`` + ``_camera_settings.json``) or a
+  RoboKeyGen sequence: its ground truth is used to report the error of the fused pose;
+* a plain folder::
+
+      camera.json          intrinsics {fx, fy, cx, cy, width, height} (or any layout
+                           monose3.inputs.load_camera reads: DREAM settings, ROS CameraInfo;
+                           camera.yaml works too)
+      0000.png             an image (PNG or JPEG: .png, .jpg, .jpeg)
+      0000.joints.json     its joint angles: {joint name: radians} (or a list in URDF order;
+                           .joints.yaml works too)
+      0001.jpg
+      0001.joints.json
+      ...
+
+  Every image needs its joints file; frames are taken in natural name order.
+
+Outputs (``--out``): ``calibration.json`` (the fused camera_from_base and base_from_camera in
+meters, the rejections and per-frame residuals), ``calibration.yaml`` (the same without the
+per-frame list) and ``calibration_overlay.png`` (the robot at the fused pose drawn on a few frames).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from monose3.api import UNRELIABLE_MM
+from monose3.errors import Monose3Error
+from monose3.inputs import CameraIntrinsics, load_camera, load_image, load_joints
+from monose3.render import RenderJob
+from monose3.robot import RobotModel
+from monose3.se3_average import (
+    pose_residuals,
+    robust_consensus,
+    robust_pose_average,
+    rotation_to_quat,
+)
+from monose3.viz import draw_overlay, image_grid, save_image
+
+log = logging.getLogger("monose3")
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+JOINTS_SUFFIXES = (".joints.json", ".joints.yaml", ".joints.yml")
+CAMERA_FILES = ("camera.json", "camera.yaml", "camera.yml")
+# Consensus rejection: median + K * sigma_MAD of the residuals, but never tighter than the floors.
+CONSENSUS_K = 3.0
+MIN_THRESHOLD_MM = 10.0
+MIN_THRESHOLD_DEG = 2.0
+# Ground-truth poses of a static camera that spread more than this are reported as a moving camera.
+STATIC_GT_MM = 5.0
+OVERLAY_TILE_WIDTH = 480
+PRINT_ALL_FRAMES = 40
+
+REASON_OUT_OF_VIEW = "out of view"
+REASON_UNRELIABLE = "unreliable chains"
+REASON_CONSENSUS = "far from consensus"
+
+
+# ---- frames ----------------------------------------------------------------------------------
+
+
+@dataclass
+class ImageFrame:
+    """One user frame: an image (a file or an array already in memory, e.g. a video frame),
+    its joints and intrinsics. ``pose`` / ``keypoints_3d`` are ground truth when known
+    (DREAM frames carry them under the same names)."""
+
+    name: str
+    K: np.ndarray
+    image_size: tuple[int, int]
+    joints: np.ndarray
+    image_path: Path | None = None
+    image: np.ndarray | None = None
+    pose: np.ndarray | None = None
+    keypoints_3d: np.ndarray | None = None
+
+    def load_image(self) -> np.ndarray:
+        img = self.image if self.image is not None else load_image(self.image_path)
+        h, w = img.shape[:2]
+        if (w, h) != tuple(self.image_size):
+            where = self.image_path.name if self.image_path is not None else f"frame {self.name}"
+            raise Monose3Error(
+                f"{where} is {w}x{h} but the camera intrinsics are for {self.image_size[0]}x{self.image_size[1]}; "
+                "give intrinsics calibrated at the images' resolution"
+            )
+        return img
+
+
+def _natural_key(name: str) -> list:
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def _image_stem(name: str) -> str | None:
+    low = name.lower()
+    for suffix in IMAGE_SUFFIXES:
+        if low.endswith(suffix):
+            return name[: -len(suffix)]
+    return None
+
+
+def _joints_stem(name: str) -> str | None:
+    low = name.lower()
+    for suffix in JOINTS_SUFFIXES:
+        if low.endswith(suffix):
+            return name[: -len(suffix)]
+    return None
+
+
+def is_plain_folder(folder: Path) -> bool:
+    """True when ``folder`` uses the plain layout (a camera file or ``*.joints.json`` files)."""
+    names = [e.name for e in os.scandir(folder) if e.is_file()]
+    return any(n in CAMERA_FILES for n in names) or any(_joints_stem(n) is not None for n in names)
+
+
+def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[ImageFrame]:
+    """The frames of a plain folder (layout in the module docstring); joints are read and
+    checked up front so a bad file stops the run before any estimation."""
+    folder = Path(folder)
+    names = sorted((e.name for e in os.scandir(folder) if e.is_file()), key=_natural_key)
+    camera_file = next((folder / n for n in CAMERA_FILES if n in names), None)
+    images = [(n, _image_stem(n)) for n in names if _image_stem(n) is not None]
+    joints_files = {_joints_stem(n): n for n in names if _joints_stem(n) is not None}
+    if not images:
+        raise Monose3Error(
+            f"no images (.png/.jpg) in {folder}; put NNNN.png + NNNN.joints.json per frame and one camera.json there"
+        )
+    if camera_file is None:
+        raise Monose3Error(
+            f"no camera.json in {folder}; add the intrinsics as camera.json {{fx, fy, cx, cy, width, height}}"
+        )
+    camera: CameraIntrinsics = load_camera(camera_file)
+    frames = []
+    for image_name, stem in images:
+        if stem not in joints_files:
+            raise Monose3Error(
+                f"no joints file for image {image_name} in {folder}; add {stem}.joints.json with "
+                "{joint name: radians} (or remove the image)"
+            )
+        joints = load_joints(folder / joints_files[stem], robot)
+        frames.append(ImageFrame(stem, camera.K, camera.size, joints, image_path=folder / image_name))
+    orphans = sorted(set(joints_files) - {stem for _, stem in images})
+    if orphans:
+        log.warning("%d joints file(s) without an image in %s ignored (e.g. %s)", len(orphans), folder, orphans[0])
+    return frames
+
+
+def load_frames(folder: str | Path, robot: RobotModel) -> Sequence:
+    """The frames of ``folder``: a plain folder (see the module docstring) or a DREAM /
+    RoboKeyGen folder (frames then carry ground truth: ``pose`` and ``keypoints_3d``)."""
+    folder = Path(folder)
+    if not folder.exists():
+        raise Monose3Error(f"frames folder not found: {folder}; check the path")
+    if not folder.is_dir():
+        raise Monose3Error(f"{folder} is not a folder; give the folder that holds the frames")
+    if not any(True for _ in os.scandir(folder)):
+        raise Monose3Error(
+            f"frames folder {folder} is empty; put NNNN.png + NNNN.joints.json per frame and camera.json there "
+            "(or point to a DREAM folder)"
+        )
+    if is_plain_folder(folder):
+        return load_plain_frames(folder, robot)
+    names = [e.name for e in os.scandir(folder) if e.is_file()]
+    has_dream_json = any(n.endswith(".json") and not n.startswith("_") for n in names)
+    has_subdirs = any(e.is_dir() for e in os.scandir(folder))
+    if not has_dream_json and not has_subdirs:
+        if any(_image_stem(n) for n in names):
+            first = next(n for n in sorted(names, key=_natural_key) if _image_stem(n))
+            raise Monose3Error(
+                f"no joints file for image {first} in {folder}; add {_image_stem(first)}.joints.json with "
+                "{joint name: radians} per image and one camera.json"
+            )
+        raise Monose3Error(
+            f"no frames in {folder}; expected NNNN.png + NNNN.joints.json per frame and camera.json, "
+            "or a DREAM folder (NNNNNN.json + NNNNNN.rgb.jpg)"
+        )
+    from monose3.dream import open_dataset
+
+    return open_dataset(folder, robot)
+
+
+def _has_ground_truth(frames: Sequence) -> bool:
+    return len(frames) > 0 and all(
+        getattr(f, "pose", None) is not None and getattr(f, "keypoints_3d", None) is not None for f in frames
+    )
+
+
+# ---- overlays --------------------------------------------------------------------------------
+
+
+def draw_pose_overlays(
+    estimator,
+    images: Sequence[np.ndarray],
+    Ks: Sequence[np.ndarray],
+    joints: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    texts: Sequence[str | None],
+    gt_keypoints: Sequence[np.ndarray | None] | None = None,
+    max_width: int | None = None,
+) -> list[np.ndarray]:
+    """The robot rendered at each pose drawn on its image (outline, fill, keypoints; ground-truth
+    keypoints as crosses when given), rendered in one batch on the estimator's renderer pool.
+    ``max_width``: tiles wider than this are shrunk (overlays are drawn at full size first)."""
+    jobs = [
+        RenderJob(
+            np.asarray(q, np.float64), np.asarray(p, np.float64), np.asarray(K, np.float64), (im.shape[1], im.shape[0])
+        )
+        for im, K, q, p in zip(images, Ks, joints, poses, strict=True)
+    ]
+    masks = [m for _, m in estimator.pool.render(jobs)] if jobs else []
+    kps = estimator.robot.keypoints(np.stack([np.asarray(q, np.float64) for q in joints])) if jobs else []
+    out = []
+    for i, (im, K, pose, mask) in enumerate(zip(images, Ks, poses, masks, strict=True)):
+        K = np.asarray(K, np.float64)
+        cam = kps[i] @ pose[:3, :3].T + pose[:3, 3]
+        uv = _project(cam, K)
+        gt = gt_keypoints[i] if gt_keypoints is not None else None
+        tile = draw_overlay(im, mask, uv, gt_keypoints_uv=None if gt is None else _project(gt, K), text=texts[i])
+        if max_width is not None and tile.shape[1] > max_width:
+            h = round(tile.shape[0] * max_width / tile.shape[1])
+            tile = cv2.resize(tile, (max_width, h), interpolation=cv2.INTER_AREA)
+        out.append(tile)
+    return out
+
+
+def _project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    z = points_cam[:, 2:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = points_cam[:, :2] / z * np.diag(K)[:2] + K[:2, 2]
+    uv[(z[:, 0] <= 0)] = np.nan  # behind the camera: not drawn
+    return uv
+
+
+# ---- calibration ------------------------------------------------------------------------------
+
+
+@dataclass
+class FrameResult:
+    """One frame's single-frame estimate and what the fusion made of it."""
+
+    name: str
+    camera_from_base: np.ndarray
+    in_view: bool
+    chain_spread_mm: float
+    chain_spread_deg: float
+    residual_mm: float = float("nan")  # translation distance to the fused pose
+    residual_deg: float = float("nan")  # rotation angle to the fused pose
+    used: bool = False
+    reason: str | None = None  # why it was rejected
+    add_single_mm: float | None = None  # ground truth only: ADD of this frame's own estimate
+    add_fused_mm: float | None = None  # ground truth only: ADD of the fused pose on this frame
+
+    def to_dict(self) -> dict:
+        return {
+            "frame": self.name,
+            "used": self.used,
+            "rejected_because": self.reason,
+            "residual_mm": _num(self.residual_mm),
+            "residual_deg": _num(self.residual_deg),
+            "in_view": self.in_view,
+            "chain_spread_mm": _num(self.chain_spread_mm),
+            "chain_spread_deg": _num(self.chain_spread_deg),
+            "add_single_mm": _num(self.add_single_mm),
+            "add_fused_mm": _num(self.add_fused_mm),
+            "camera_from_base": self.camera_from_base.tolist(),
+        }
+
+
+def _num(v: float | None) -> float | None:
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+@dataclass
+class CalibrationResult:
+    """The fused extrinsic (camera-from-base, meters, OpenCV camera axes) and how it was made."""
+
+    camera_from_base: np.ndarray
+    frames: list[FrameResult]
+    chains: int
+    threshold_mm: float
+    threshold_deg: float
+    ground_truth: dict | None = None
+    seconds: float = 0.0
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def base_from_camera(self) -> np.ndarray:
+        return np.linalg.inv(self.camera_from_base)
+
+    @property
+    def used(self) -> list[FrameResult]:
+        return [f for f in self.frames if f.used]
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        """How many frames were rejected for each reason."""
+        return dict(Counter(f.reason for f in self.frames if not f.used))
+
+    @property
+    def spread(self) -> dict[str, float]:
+        """Residuals of the inliers to the fused pose: how much the single frames still disagree."""
+        mm = np.array([f.residual_mm for f in self.used])
+        deg = np.array([f.residual_deg for f in self.used])
+        n = len(mm)
+        return {
+            "median_mm": float(np.median(mm)),
+            "rms_mm": float(np.sqrt(np.mean(mm**2))),
+            "max_mm": float(mm.max()),
+            "median_deg": float(np.median(deg)),
+            "rms_deg": float(np.sqrt(np.mean(deg**2))),
+            "max_deg": float(deg.max()),
+            # Standard error of a mean of n independent frames; a rough size of the fused pose's
+            # own noise (frames of one scene are not fully independent, so it is optimistic).
+            "standard_error_mm": float(np.sqrt(np.mean(mm**2)) / np.sqrt(n)),
+            "standard_error_deg": float(np.sqrt(np.mean(deg**2)) / np.sqrt(n)),
+        }
+
+    def summary_dict(self) -> dict:
+        return {
+            "units": "meters",
+            "convention": "camera_from_base maps base-frame points to OpenCV camera axes (x right, y down, z forward)",
+            "camera_from_base": self.camera_from_base.tolist(),
+            "base_from_camera": self.base_from_camera.tolist(),
+            "camera_from_base_xyz_quat_xyzw": _xyz_quat(self.camera_from_base),
+            "base_from_camera_xyz_quat_xyzw": _xyz_quat(self.base_from_camera),
+            "frames_total": len(self.frames),
+            "frames_used": len(self.used),
+            "rejected": self.rejected,
+            "chains": self.chains,
+            "consensus_threshold_mm": _num(self.threshold_mm),
+            "consensus_threshold_deg": _num(self.threshold_deg),
+            "spread": self.spread,
+            "ground_truth": self.ground_truth,
+            "seconds": self.seconds,
+            **self.meta,
+        }
+
+    def to_dict(self) -> dict:
+        return {**self.summary_dict(), "frames": [f.to_dict() for f in self.frames]}
+
+
+def _xyz_quat(pose: np.ndarray) -> list[float]:
+    return [*map(float, pose[:3, 3]), *map(float, rotation_to_quat(pose[:3, :3]))]
+
+
+def _add_mm(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, gt_keypoints: np.ndarray) -> float:
+    kp = robot.keypoints(np.asarray(joints, np.float64)[None])[0] @ pose[:3, :3].T + pose[:3, 3]
+    return float(1000.0 * np.linalg.norm(kp - gt_keypoints, axis=1).mean())
+
+
+def calibrate(
+    estimator,
+    frames: Sequence,
+    chains: int = 1,
+    batch_size: int = 4,
+    seed: int = 0,
+    consensus_k: float = CONSENSUS_K,
+    min_threshold_mm: float = MIN_THRESHOLD_MM,
+    min_threshold_deg: float = MIN_THRESHOLD_DEG,
+    unreliable_mm: float = UNRELIABLE_MM,
+    progress: bool = False,
+) -> CalibrationResult:
+    """Fuse the estimates of ``frames`` (all seen by one static camera) into one extrinsic.
+
+    ``frames``: objects with ``name``, ``K``, ``joints`` and ``load_image()`` (DREAM frames or
+    :class:`ImageFrame`); with ``pose`` and ``keypoints_3d`` on every frame the error of the
+    fused pose against ground truth is filled in. Raises Monose3Error if no frame survives.
+    """
+    if len(frames) == 0:
+        raise Monose3Error("no frames to calibrate from; give a folder with at least one frame")
+    if chains < 1 or batch_size < 1:
+        raise Monose3Error(f"chains and batch size must be at least 1, got {chains} and {batch_size}")
+    start = time.perf_counter()
+    robot: RobotModel = estimator.robot
+    results: list[FrameResult] = []
+    batches = [range(i, min(i + batch_size, len(frames))) for i in range(0, len(frames), batch_size)]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(frames), desc="calibrate", unit="frame")
+    for b, idx in enumerate(batches):
+        batch = [frames[i] for i in idx]
+        images = [f.load_image() for f in batch]
+        est = estimator.estimate(
+            images,
+            np.stack([np.asarray(f.K, np.float64) for f in batch]),
+            np.stack([np.asarray(f.joints, np.float64) for f in batch]),
+            hypotheses=chains,
+            stochastic=chains > 1,
+            seed=seed + b,
+        )
+        for j, f in enumerate(batch):
+            results.append(
+                FrameResult(
+                    name=str(f.name),
+                    camera_from_base=np.asarray(est.poses[j], np.float64),
+                    in_view=bool(est.in_view[j]),
+                    chain_spread_mm=float(est.spread_mm[j]) if chains > 1 else float("nan"),
+                    chain_spread_deg=float(est.spread_deg[j]) if chains > 1 else float("nan"),
+                )
+            )
+        if bar is not None:
+            bar.update(len(batch))
+    if bar is not None:
+        bar.close()
+
+    for r in results:
+        if not r.in_view or not np.all(np.isfinite(r.camera_from_base)):
+            r.reason = REASON_OUT_OF_VIEW
+        elif chains > 1 and r.chain_spread_mm > unreliable_mm:
+            r.reason = REASON_UNRELIABLE
+    candidates = [i for i, r in enumerate(results) if r.reason is None]
+    if not candidates:
+        counts = ", ".join(f"{n} {why}" for why, n in Counter(r.reason for r in results).items())
+        raise Monose3Error(
+            f"all {len(results)} frames were rejected ({counts}); check that the robot is visible, that the joints "
+            "and intrinsics belong to these images and that the checkpoint is for this robot"
+        )
+    poses = np.stack([results[i].camera_from_base for i in candidates])
+    consensus = robust_consensus(poses, consensus_k, min_threshold_mm, min_threshold_deg)
+    fused = consensus.pose
+    for i, inlier in zip(candidates, consensus.inliers, strict=True):
+        results[i].used = bool(inlier)
+        if not inlier:
+            results[i].reason = REASON_CONSENSUS
+    all_poses = np.stack([r.camera_from_base for r in results])
+    finite = np.all(np.isfinite(all_poses), axis=(1, 2))
+    res_mm = np.full(len(results), np.nan)
+    res_deg = np.full(len(results), np.nan)
+    if finite.any():
+        res_mm[finite], res_deg[finite] = pose_residuals(all_poses[finite], fused)
+    for r, mm, deg in zip(results, res_mm, res_deg, strict=True):
+        r.residual_mm, r.residual_deg = float(mm), float(deg)
+
+    gt = None
+    if _has_ground_truth(frames):
+        gt = _ground_truth_report(robot, frames, results, fused)
+    return CalibrationResult(
+        camera_from_base=fused,
+        frames=results,
+        chains=chains,
+        threshold_mm=consensus.threshold_mm,
+        threshold_deg=consensus.threshold_deg,
+        ground_truth=gt,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def _ground_truth_report(robot: RobotModel, frames: Sequence, results: list[FrameResult], fused: np.ndarray) -> dict:
+    """Error of the fused pose against ground truth, next to the single-frame errors it replaces."""
+    gt_poses = np.stack([np.asarray(f.pose, np.float64) for f in frames])
+    gt_ref = robust_pose_average(gt_poses)
+    gt_spread_mm, gt_spread_deg = pose_residuals(gt_poses, gt_ref)
+    fused_mm, fused_deg = pose_residuals(fused[None], gt_ref)
+    single_mm, single_deg = pose_residuals(np.stack([r.camera_from_base for r in results]), gt_ref)
+    for f, r in zip(frames, results, strict=True):
+        r.add_fused_mm = _add_mm(robot, fused, f.joints, f.keypoints_3d)
+        ok = r.in_view and np.all(np.isfinite(r.camera_from_base))
+        r.add_single_mm = _add_mm(robot, r.camera_from_base, f.joints, f.keypoints_3d) if ok else float("inf")
+    single_add = np.array([r.add_single_mm for r in results])
+    return {
+        "fused_error_mm": float(fused_mm[0]),
+        "fused_error_deg": float(fused_deg[0]),
+        "fused_add_mean_mm": float(np.mean([r.add_fused_mm for r in results])),
+        "single_frame_error_median_mm": float(np.median(single_mm)),
+        "single_frame_error_median_deg": float(np.median(single_deg)),
+        "single_frame_add_median_mm": _num(float(np.median(single_add))),
+        "ground_truth_spread_max_mm": float(gt_spread_mm.max()),
+        "ground_truth_spread_max_deg": float(gt_spread_deg.max()),
+        "static_camera": bool(gt_spread_mm.max() <= STATIC_GT_MM),
+    }
+
+
+# ---- report and files ---------------------------------------------------------------------------
+
+
+def format_report(result: CalibrationResult, max_frames: int = PRINT_ALL_FRAMES) -> str:
+    """The per-frame residual table (all frames if few, else the rejected ones) and the summary."""
+    fmt = lambda m: "\n".join(  # noqa: E731
+        "  [" + ", ".join(f"{v: .6f}" for v in row) + "]" for row in np.where(np.abs(m) < 5e-7, 0.0, m)
+    )
+    lines = []
+    shown = result.frames if len(result.frames) <= max_frames else [f for f in result.frames if not f.used]
+    if shown:
+        lines.append(
+            f"{'frame':>16} {'status':>28} {'resid mm':>9} {'resid deg':>9}"
+            + (f" {'chains mm':>9}" if result.chains > 1 else "")
+        )
+        for f in shown:
+            status = "used" if f.used else f"rejected: {f.reason}"
+            row = f"{f.name:>16} {status:>28} {f.residual_mm:9.1f} {f.residual_deg:9.2f}"
+            if result.chains > 1:
+                row += f" {f.chain_spread_mm:9.1f}"
+            lines.append(row)
+        if len(shown) < len(result.frames):
+            lines.append(f"  ({len(result.frames) - len(shown)} used frames not listed; see calibration.json)")
+    s = result.spread
+    rejected = ", ".join(f"{n} {why}" for why, n in result.rejected.items()) or "none"
+    lines += [
+        f"frames: {len(result.used)} of {len(result.frames)} used; rejected: {rejected}",
+        f"consensus thresholds: {result.threshold_mm:.1f} mm / {result.threshold_deg:.2f} deg",
+        f"spread of the used frames to the fused pose: median {s['median_mm']:.1f} mm / {s['median_deg']:.2f} deg, "
+        f"RMS {s['rms_mm']:.1f} mm / {s['rms_deg']:.2f} deg (standard error ~{s['standard_error_mm']:.1f} mm / "
+        f"{s['standard_error_deg']:.2f} deg)",
+        f"camera_from_base (m):\n{fmt(result.camera_from_base)}",
+        f"base_from_camera (m):\n{fmt(result.base_from_camera)}",
+    ]
+    gt = result.ground_truth
+    if gt is not None:
+        lines.append(
+            f"vs ground truth: fused {gt['fused_error_mm']:.1f} mm / {gt['fused_error_deg']:.2f} deg "
+            f"(ADD {gt['fused_add_mean_mm']:.1f} mm); single frames median {gt['single_frame_error_median_mm']:.1f} mm "
+            f"/ {gt['single_frame_error_median_deg']:.2f} deg (ADD {_mm(gt['single_frame_add_median_mm'])})"
+        )
+        if not gt["static_camera"]:
+            lines.append(
+                f"warning: the ground-truth poses differ by up to {gt['ground_truth_spread_max_mm']:.0f} mm: the "
+                "camera was not static, so one extrinsic cannot fit every frame (see the per-frame ADDs in the JSON)"
+            )
+    return "\n".join(lines)
+
+
+def _mm(v: float | None) -> str:
+    return "failed" if v is None else f"{v:.1f} mm"
+
+
+def write_calibration_files(result: CalibrationResult, out: str | Path) -> tuple[Path, Path]:
+    """``calibration.json`` (everything, per-frame residuals included) and ``calibration.yaml`` (the summary)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path, yaml_path = out / "calibration.json", out / "calibration.yaml"
+    json_path.write_text(json.dumps(result.to_dict(), indent=2))
+    yaml_path.write_text(yaml.safe_dump(result.summary_dict(), sort_keys=False, default_flow_style=None))
+    return json_path, yaml_path
+
+
+def overlay_grid(estimator, frames: Sequence, result: CalibrationResult, count: int = 6, cols: int = 3) -> np.ndarray:
+    """The robot at the fused pose on ``count`` frames spread over the set, with each frame's residual."""
+    n = len(frames)
+    picks = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(count, n))})
+    images, Ks, joints, texts, gts = [], [], [], [], []
+    for i in picks:
+        f, r = frames[i], result.frames[i]
+        images.append(f.load_image())
+        Ks.append(f.K)
+        joints.append(f.joints)
+        status = f"{r.residual_mm:.0f} mm / {r.residual_deg:.1f} deg" if r.used else f"rejected ({r.reason})"
+        texts.append(f"{f.name}: {status}")
+        gts.append(getattr(f, "keypoints_3d", None))
+    tiles = draw_pose_overlays(
+        estimator, images, Ks, joints, [result.camera_from_base] * len(picks), texts, gts, OVERLAY_TILE_WIDTH
+    )
+    return image_grid(tiles, cols=min(cols, len(tiles)), pad=4, background=255)
+
+
+# ---- command line ------------------------------------------------------------------------------
+
+
+def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--frames",
+        required=True,
+        help="folder of NNNN.png|jpg + NNNN.joints.json + camera.json, or a DREAM folder (then the error vs ground "
+        "truth is reported)",
+    )
+    p.add_argument("--checkpoint", help="model checkpoint (default: the bundled Panda model)")
+    p.add_argument("--robot", help="robot the checkpoint must be for (checked)")
+    p.add_argument("--out", default="monose3_calibration", help="folder for calibration.json/.yaml and the overlay")
+    p.add_argument(
+        "--chains",
+        type=int,
+        default=1,
+        help="stochastic chains per frame; >1 also rejects frames whose chains disagree",
+    )
+    p.add_argument("--batch-size", type=int, default=4, help="frames estimated together")
+    p.add_argument("--limit", type=int, help="use only the first N frames")
+    p.add_argument("--workers", type=int, default=0, help="renderer processes (0: render in this process)")
+    p.add_argument("--device", default="auto", help="cpu, cuda or auto")
+    p.add_argument(
+        "--consensus-k",
+        type=float,
+        default=CONSENSUS_K,
+        help="reject frames beyond median + k * sigma_MAD of the residuals to the first robust fusion",
+    )
+    p.add_argument("--overlay-frames", type=int, default=6, help="frames in the overlay grid (0: no overlay)")
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from monose3.api import load_estimator
+
+    if args.limit is not None and args.limit < 1:
+        raise Monose3Error(f"--limit must be at least 1, got {args.limit}")
+    if not Path(args.frames).is_dir():
+        raise Monose3Error(f"frames folder not found: {args.frames}; give the folder that holds the frames")
+    estimator = load_estimator(args.checkpoint, robot=args.robot, workers=args.workers, device=args.device)
+    try:
+        frames = load_frames(args.frames, estimator.robot)
+        if args.limit is not None:
+            frames = frames[: args.limit]
+        print(f"calibrating from {len(frames)} frames of {args.frames}")
+        result = calibrate(
+            estimator,
+            frames,
+            chains=max(1, args.chains),
+            batch_size=max(1, args.batch_size),
+            consensus_k=args.consensus_k,
+            progress=True,
+        )
+        out = Path(args.out)
+        json_path, yaml_path = write_calibration_files(result, out)
+        written = [json_path, yaml_path]
+        if args.overlay_frames > 0:
+            written.append(
+                save_image(
+                    out / "calibration_overlay.png", overlay_grid(estimator, frames, result, args.overlay_frames)
+                )
+            )
+    finally:
+        estimator.close()
+    print(format_report(result))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0

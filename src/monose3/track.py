@@ -1,0 +1,460 @@
+"""``monose3 track``: the pose over a sequence, one cheap step per frame (the paper's tracking).
+
+The first frame gets the full reverse process (``inference.ddim_steps`` + ``direct_steps``,
+10 network steps by default); every next frame starts from the previous estimate and takes
+one step at a small timestep (:meth:`PoseEstimator.track`, about 10x faster). Tracking can
+lose the robot, so a frame is re-initialised with the full process when
+
+* the previous estimate was out of view ("lost"),
+* the 1-step update puts the robot outside the image ("out of view"),
+* the 1-step update moved the robot's keypoints by more than ``max_step_mm`` on average or
+  rotated the pose by more than ``max_step_deg`` ("jump": between consecutive frames the
+  pose should barely change, so a big step means the update is not to be trusted), or
+* ``reinit_every`` frames passed since the last full estimate ("periodic", off by default).
+
+Inputs: ``--frames DIR`` (a DREAM folder, whose ground truth gives the ADD of every frame, or
+the plain folder of ``monose3 calibrate``: ``NNNN.png`` + ``NNNN.joints.json`` + ``camera.json``),
+or ``--video FILE --camera FILE`` with the joints of every frame either in
+
+* ``--joints-csv FILE``: a header row of joint names (URDF names, any order), then one row
+  per video frame, radians. An optional column named ``frame`` (or ``name``) names the
+  frames; columns ``time``, ``timestamp`` and ``stamp`` are ignored. Example::
+
+      frame,panda_joint1,panda_joint2,panda_joint3,panda_joint4,panda_joint5,panda_joint6,panda_joint7
+      0,0.0,-0.3,0.0,-2.2,0.0,2.0,0.8
+      1,0.01,-0.3,0.0,-2.2,0.0,2.0,0.8
+
+* ``--joints DIR``: one joints file per video frame (``{name: radians}`` JSON/YAML), taken in
+  natural name order.
+
+The number of rows (files) must equal the number of video frames. Outputs (``--out``):
+``poses.jsonl`` and ``poses.csv`` (per frame: name, mode full|track, why a full estimate was
+run, camera_from_base flattened row-major, meters) and ``track.gif`` (the overlays).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from monose3.calibrate import ImageFrame, _natural_key, draw_pose_overlays, load_frames
+from monose3.errors import Monose3Error
+from monose3.inputs import load_camera, load_joints
+from monose3.robot import RobotModel
+from monose3.se3_average import rotation_angle
+from monose3.viz import save_animation
+
+# A 1-step update that moves the robot more than this between two frames is not trusted.
+MAX_STEP_MM = 50.0
+MAX_STEP_DEG = 10.0
+GIF_TILE_WIDTH = 320
+PRINT_ALL_FRAMES = 40
+IGNORED_CSV_COLUMNS = ("time", "timestamp", "stamp")
+NAME_CSV_COLUMNS = ("frame", "name")
+
+MODE_FULL, MODE_TRACK = "full", "track"
+
+
+@dataclass
+class TrackFrame:
+    """The estimate of one frame of a sequence."""
+
+    index: int
+    name: str
+    camera_from_base: np.ndarray
+    mode: str  # "full" (reverse process from the initialisation) or "track" (1 step from the previous frame)
+    reason: str | None  # why the full process ran: first, lost, out of view, jump, periodic
+    in_view: bool
+    step_mm: float | None = None  # mean keypoint motion of the 1-step update (also when it was rejected)
+    step_deg: float | None = None  # rotation of the 1-step update
+    seconds: float = 0.0
+    add_mm: float | None = None  # ground truth only; inf when the estimate is out of view
+
+    def to_dict(self) -> dict:
+        num = lambda v: None if v is None or not math.isfinite(v) else float(v)  # noqa: E731
+        return {
+            "index": self.index,
+            "frame": self.name,
+            "mode": self.mode,
+            "reason": self.reason,
+            "in_view": self.in_view,
+            "camera_from_base": [float(v) for v in self.camera_from_base.reshape(-1)],
+            "step_mm": num(self.step_mm),
+            "step_deg": num(self.step_deg),
+            "seconds": float(self.seconds),
+            "add_mm": num(self.add_mm),
+        }
+
+
+def _keypoint_motion_mm(robot: RobotModel, joints: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Mean distance (mm) the robot's keypoints move between poses ``a`` and ``b`` (camera frame)."""
+    kp = robot.keypoints(np.asarray(joints, np.float64)[None])[0]
+    pa = kp @ a[:3, :3].T + a[:3, 3]
+    pb = kp @ b[:3, :3].T + b[:3, 3]
+    return float(1000.0 * np.linalg.norm(pa - pb, axis=1).mean())
+
+
+def track_sequence(
+    estimator,
+    frames_iter: Iterable,
+    max_step_mm: float = MAX_STEP_MM,
+    max_step_deg: float = MAX_STEP_DEG,
+    reinit_every: int | None = None,
+    on_frame: Callable[[object, np.ndarray, TrackFrame], None] | None = None,
+) -> list[TrackFrame]:
+    """Track the camera-from-base pose over ``frames_iter`` (objects with ``name``, ``K``,
+    ``joints``, ``load_image()``; with ``keypoints_3d`` the ADD is filled in).
+
+    ``on_frame(frame, image, result)`` is called after each frame (for streaming output and
+    overlays without keeping the images). Returns one :class:`TrackFrame` per frame.
+    """
+    if reinit_every is not None and reinit_every < 1:
+        raise Monose3Error(f"reinit_every must be at least 1 (or None), got {reinit_every}")
+    robot: RobotModel = estimator.robot
+    out: list[TrackFrame] = []
+    previous: np.ndarray | None = None
+    since_full = 0
+    for index, frame in enumerate(frames_iter):
+        image = frame.load_image()
+        K = np.asarray(frame.K, np.float64)[None]
+        q = np.asarray(frame.joints, np.float64)[None]
+        tick = time.perf_counter()
+        step_mm = step_deg = None
+        reason = None
+        if previous is None:
+            reason = "first" if index == 0 else "lost"
+        elif reinit_every is not None and since_full >= reinit_every:
+            reason = "periodic"
+        else:
+            est = estimator.track([image], K, q, previous[None])
+            pose = est.poses[0]
+            step_mm = _keypoint_motion_mm(robot, q[0], previous, pose)
+            step_deg = float(np.degrees(rotation_angle(previous[:3, :3], pose[:3, :3])))
+            if not est.in_view[0]:
+                reason = "out of view"
+            elif step_mm > max_step_mm or step_deg > max_step_deg:
+                reason = "jump"
+            else:
+                result = TrackFrame(index, str(frame.name), pose, MODE_TRACK, None, True, step_mm, step_deg)
+        if reason is not None:
+            est = estimator.estimate([image], K, q)
+            result = TrackFrame(
+                index, str(frame.name), est.poses[0], MODE_FULL, reason, bool(est.in_view[0]), step_mm, step_deg
+            )
+            since_full = 0
+        since_full += 1
+        result.seconds = time.perf_counter() - tick
+        previous = result.camera_from_base if result.in_view else None
+        gt = getattr(frame, "keypoints_3d", None)
+        if gt is not None:
+            if result.in_view:
+                kp = robot.keypoints(q)[0] @ result.camera_from_base[:3, :3].T + result.camera_from_base[:3, 3]
+                result.add_mm = float(1000.0 * np.linalg.norm(kp - np.asarray(gt), axis=1).mean())
+            else:
+                result.add_mm = float("inf")
+        out.append(result)
+        if on_frame is not None:
+            on_frame(frame, image, result)
+    if not out:
+        raise Monose3Error("no frames to track; give a folder or video with at least one frame")
+    return out
+
+
+# ---- video input -----------------------------------------------------------------------------
+
+
+def read_video(path: str | Path) -> Iterator[np.ndarray]:
+    """The frames of a video file as RGB uint8 arrays (OpenCV's FFmpeg; imageio/Pillow for what
+    OpenCV cannot open, such as GIFs on some builds)."""
+    p = Path(path)
+    if not p.is_file():
+        raise Monose3Error(f"video not found: {p}; check the path")
+    cap = cv2.VideoCapture(str(p))
+    count = 0
+    try:
+        while cap.isOpened():
+            ok, bgr = cap.read()
+            if not ok:
+                break
+            count += 1
+            yield cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    finally:
+        cap.release()
+    if count:
+        return
+    import imageio.v3 as iio
+
+    try:
+        frames = iio.imiter(p)
+        for frame in frames:
+            img = np.asarray(frame)
+            if img.ndim == 2:
+                img = np.repeat(img[:, :, None], 3, axis=2)
+            yield np.ascontiguousarray(img[:, :, :3]).astype(np.uint8, copy=False)
+            count += 1
+    except Exception as err:  # noqa: BLE001 - any decoder failure means the same to the user
+        if count:
+            raise Monose3Error(f"video {p} is corrupt after frame {count} ({type(err).__name__})") from None
+        raise Monose3Error(
+            f"cannot read video {p} ({type(err).__name__}); convert it to MP4 (H.264) or a folder of PNG frames"
+        ) from None
+    if not count:
+        raise Monose3Error(f"video {p} has no frames; check the file")
+
+
+def count_video_frames(path: str | Path) -> int:
+    """Number of decodable frames (counted by grabbing, not from the header, which can be wrong)."""
+    cap = cv2.VideoCapture(str(path))
+    n = 0
+    try:
+        while cap.isOpened() and cap.grab():
+            n += 1
+    finally:
+        cap.release()
+    return n if n else sum(1 for _ in read_video(path))
+
+
+def load_joints_csv(path: str | Path, robot: RobotModel) -> tuple[list[str] | None, np.ndarray]:
+    """Frame names (from a ``frame``/``name`` column, else None) and joints ``[N, n]`` from a CSV
+    whose header names the joints (layout in the module docstring)."""
+    p = Path(path)
+    if not p.is_file():
+        raise Monose3Error(f"joints CSV not found: {p}; check the path")
+    with p.open(newline="", encoding="utf-8") as fh:
+        rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
+    if len(rows) < 2:
+        raise Monose3Error(f"{p} needs a header row of joint names and one row per frame; it has {len(rows)} row(s)")
+    header = [h.strip() for h in rows[0]]
+    lower = [h.lower() for h in header]
+    name_col = next((i for i, h in enumerate(lower) if h in NAME_CSV_COLUMNS), None)
+    joint_cols = [i for i, h in enumerate(lower) if i != name_col and h not in IGNORED_CSV_COLUMNS]
+    if all(_is_float(h) for h in header):
+        raise Monose3Error(
+            f"{p} has no header row; add a first row naming the joints (e.g. {robot.required_joints[0]})"
+        )
+    names, joints = [], []
+    for r, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise Monose3Error(f"{p} row {r} has {len(row)} values but the header has {len(header)}; fix the row")
+        values = {}
+        for i in joint_cols:
+            cell = row[i].strip()
+            if not _is_float(cell):
+                raise Monose3Error(f"{p} row {r}: {header[i]} = {cell!r} is not a number (radians)")
+            values[header[i]] = float(cell)
+        try:
+            joints.append(load_joints(values, robot))
+        except Monose3Error as err:
+            raise Monose3Error(f"{p} row {r}: {err}") from None
+        names.append(row[name_col].strip() if name_col is not None else None)
+    return (names if name_col is not None else None), np.stack(joints)
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def load_joints_dir(folder: str | Path, robot: RobotModel) -> tuple[list[str], np.ndarray]:
+    """Per-frame joint files of a folder (JSON/YAML, natural name order): names and ``[N, n]``."""
+    d = Path(folder)
+    if not d.is_dir():
+        raise Monose3Error(f"joints folder not found: {d}; give a folder with one joints JSON per frame")
+    files = sorted(
+        (e.name for e in os.scandir(d) if e.is_file() and e.name.lower().endswith((".json", ".yaml", ".yml"))),
+        key=_natural_key,
+    )
+    files = [f for f in files if not f.startswith("camera.")]
+    if not files:
+        raise Monose3Error(f"no joints files (.json/.yaml) in {d}; put one {{name: radians}} file per video frame")
+    names = [f.split(".")[0] for f in files]
+    return names, np.stack([load_joints(d / f, robot) for f in files])
+
+
+def video_frames(
+    video: str | Path, camera_file: str | Path, joints: np.ndarray, names: Sequence[str] | None = None
+) -> Iterator[ImageFrame]:
+    """The frames of a video with their joints. The camera file and the frame count are checked
+    here, before anything is estimated; the frames are then decoded one at a time."""
+    camera = load_camera(camera_file)
+    n = count_video_frames(video)
+    if n != len(joints):
+        raise Monose3Error(
+            f"video {Path(video).name} has {n} frames but {len(joints)} joint rows were given; "
+            "give exactly one row (file) of joints per video frame"
+        )
+
+    def frames() -> Iterator[ImageFrame]:
+        for i, image in enumerate(read_video(video)):
+            name = names[i] if names is not None and names[i] else f"{i:06d}"
+            yield ImageFrame(name, camera.K, camera.size, joints[i], image=image)
+
+    return frames()
+
+
+# ---- command line ------------------------------------------------------------------------------
+
+
+def add_track_arguments(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--frames", help="DREAM folder or folder of NNNN.png + NNNN.joints.json + camera.json")
+    src.add_argument("--video", help="video file (MP4, AVI, GIF...); needs --camera and --joints-csv or --joints")
+    jsrc = p.add_mutually_exclusive_group()
+    jsrc.add_argument("--joints-csv", help="with --video: CSV, header = joint names, one row per frame (radians)")
+    jsrc.add_argument("--joints", help="with --video: folder with one joints JSON per frame (name order)")
+    p.add_argument("--camera", help="with --video: intrinsics file (JSON {fx, fy, cx, cy, width, height}, ...)")
+    p.add_argument("--checkpoint", help="model checkpoint (default: the bundled Panda model)")
+    p.add_argument("--robot", help="robot the checkpoint must be for (checked)")
+    p.add_argument("--out", default="monose3_track", help="folder for poses.jsonl, poses.csv and track.gif")
+    p.add_argument("--limit", type=int, help="track only the first N frames of --frames")
+    p.add_argument("--reinit-every", type=int, help="run the full process every N frames as well")
+    p.add_argument("--max-step-mm", type=float, default=MAX_STEP_MM, help="re-initialise when one step moves more")
+    p.add_argument("--max-step-deg", type=float, default=MAX_STEP_DEG, help="re-initialise when one step rotates more")
+    p.add_argument("--gif-every", type=int, default=1, help="put every N-th frame in track.gif (0: no GIF)")
+    p.add_argument("--fps", type=float, default=10.0, help="frame rate of track.gif")
+    p.add_argument("--workers", type=int, default=0, help="renderer processes (0: render in this process)")
+    p.add_argument("--device", default="auto", help="cpu, cuda or auto")
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    """Argument combinations, checked before the model is loaded."""
+    if args.limit is not None and args.limit < 1:
+        raise Monose3Error(f"--limit must be at least 1, got {args.limit}")
+    if args.gif_every < 0:
+        raise Monose3Error(f"--gif-every must be >= 0, got {args.gif_every}")
+    if args.frames is not None:
+        if args.joints_csv or args.joints or args.camera:
+            raise Monose3Error(
+                "--joints-csv/--joints/--camera go with --video; a --frames folder holds its own joints and camera"
+            )
+        return
+    if not Path(args.video).is_file():
+        raise Monose3Error(f"video not found: {args.video}; check the path")
+    if not args.camera:
+        raise Monose3Error("--video needs --camera FILE with the intrinsics {fx, fy, cx, cy, width, height}")
+    if not (args.joints_csv or args.joints):
+        raise Monose3Error("--video needs the joints of every frame: --joints-csv FILE or --joints DIR")
+
+
+def _frames_for(args: argparse.Namespace, robot: RobotModel) -> Iterable:
+    if args.frames is not None:
+        frames = load_frames(args.frames, robot)
+        return frames[: args.limit] if args.limit is not None else frames
+    if args.joints_csv:
+        names, joints = load_joints_csv(args.joints_csv, robot)
+    else:
+        names, joints = load_joints_dir(args.joints, robot)
+    return video_frames(args.video, args.camera, joints, names)
+
+
+def format_summary(results: Sequence[TrackFrame], max_frames: int = PRINT_ALL_FRAMES) -> str:
+    lines = []
+    has_gt = any(r.add_mm is not None for r in results)
+    if len(results) <= max_frames:
+        for r in results:
+            row = f"{r.name:>16} {r.mode:>5} {r.reason or '':>12}"
+            if r.step_mm is not None:
+                row += f"  step {r.step_mm:6.1f} mm {r.step_deg:5.2f} deg"
+            if r.add_mm is not None:
+                row += f"  ADD {r.add_mm:7.1f} mm" if math.isfinite(r.add_mm) else "  ADD failed"
+            lines.append(row)
+    full = [r for r in results if r.mode == MODE_FULL]
+    track = [r for r in results if r.mode == MODE_TRACK]
+    why = ", ".join(f"{n} {k}" for k, n in Counter(r.reason for r in full).items())
+    lines.append(f"frames: {len(results)}; full: {len(full)} ({why}); track: {len(track)}")
+    if track:
+        t = float(np.mean([r.seconds for r in track]))
+        lines.append(
+            f"time per frame: track {t:.3f} s ({1 / t:.1f} FPS), full {np.mean([r.seconds for r in full]):.3f} s"
+        )
+    if has_gt:
+        adds = np.array([r.add_mm for r in results if r.add_mm is not None])
+        ok = adds[np.isfinite(adds)]
+        if ok.size:
+            lines.append(
+                f"ADD vs ground truth: mean {ok.mean():.1f} mm, median {np.median(ok):.1f} mm, "
+                f"failures {int((~np.isfinite(adds)).sum())}"
+            )
+        else:
+            lines.append(f"ADD vs ground truth: every frame failed ({len(adds)})")
+    return "\n".join(lines)
+
+
+def run_track(args: argparse.Namespace) -> int:
+    from monose3.api import load_estimator
+
+    _check_args(args)
+    estimator = load_estimator(args.checkpoint, robot=args.robot, workers=args.workers, device=args.device)
+    out = Path(args.out)
+    tiles: list[np.ndarray] = []
+    try:
+        frames = _frames_for(args, estimator.robot)  # inputs checked before any output is written
+        out.mkdir(parents=True, exist_ok=True)
+        jsonl_path, csv_path = out / "poses.jsonl", out / "poses.csv"
+        with jsonl_path.open("w") as jf, csv_path.open("w", newline="") as cf:
+            writer = csv.writer(cf)
+            writer.writerow(
+                ["index", "frame", "mode", "reason", "in_view", *(f"m{r}{c}" for r in range(4) for c in range(4))]
+                + ["add_mm"]
+            )
+
+            def on_frame(frame, image: np.ndarray, result: TrackFrame) -> None:
+                d = result.to_dict()
+                jf.write(json.dumps(d) + "\n")
+                jf.flush()
+                writer.writerow(
+                    [d["index"], d["frame"], d["mode"], d["reason"] or "", int(d["in_view"])]
+                    + [f"{v:.9g}" for v in d["camera_from_base"]]
+                    + ["" if d["add_mm"] is None else f"{d['add_mm']:.3f}"]
+                )
+                if args.gif_every and result.index % args.gif_every == 0:
+                    text = f"{result.name} {result.mode}" + (f" ({result.reason})" if result.reason else "")
+                    if result.add_mm is not None and math.isfinite(result.add_mm):
+                        text += f" ADD {result.add_mm:.0f} mm"
+                    gt = getattr(frame, "keypoints_3d", None)
+                    tiles.extend(
+                        draw_pose_overlays(
+                            estimator,
+                            [image],
+                            [frame.K],
+                            [frame.joints],
+                            [result.camera_from_base],
+                            [text],
+                            [gt],
+                            GIF_TILE_WIDTH,
+                        )
+                    )
+
+            results = track_sequence(
+                estimator,
+                frames,
+                max_step_mm=args.max_step_mm,
+                max_step_deg=args.max_step_deg,
+                reinit_every=args.reinit_every,
+                on_frame=on_frame,
+            )
+    finally:
+        estimator.close()
+    written = [jsonl_path, csv_path]
+    if tiles:
+        # Frames of a folder may differ in size; the animation needs one size.
+        h, w = tiles[0].shape[:2]
+        tiles = [t if t.shape[:2] == (h, w) else cv2.resize(t, (w, h), interpolation=cv2.INTER_AREA) for t in tiles]
+        written.append(save_animation(tiles, out / "track.gif", fps=args.fps))
+    print(format_summary(results))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0

@@ -1,0 +1,111 @@
+"""Shared fixtures: one RobotModel and one Renderer per robot for the whole session (pybullet
+start-up and URDF parsing are the slow parts), and a sampler of random views of the robot."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from monose3.render import Renderer
+from monose3.robot import RobotModel
+
+ROBOTS = ("panda", "kuka")
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Camera-from-base pose (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, y, z])
+    pose[:3, 3] = -pose[:3, :3] @ eye
+    return pose
+
+
+def project_np(points: np.ndarray, pose: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Reference pinhole projection of base-frame ``[N, 3]`` points (plain numpy, no monose3)."""
+    cam = points @ pose[:3, :3].T + pose[:3, 3]
+    return cam[:, :2] / cam[:, 2:3] * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+
+
+@dataclass
+class View:
+    """A random robot configuration seen by a random camera."""
+
+    joints: np.ndarray
+    pose: np.ndarray
+    K: np.ndarray
+    size: tuple[int, int]
+    points: np.ndarray  # surface points, base frame
+    keypoints: np.ndarray  # base frame
+
+    def uv(self, points: np.ndarray | None = None) -> np.ndarray:
+        return project_np(self.points if points is None else points, self.pose, self.K)
+
+    def fully_in_view(self, points: np.ndarray | None = None, margin: float = 1.0) -> bool:
+        uv = self.uv(points)
+        w, h = self.size
+        return bool(
+            (uv.min(0) >= margin).all() and uv[:, 0].max() <= w - 1 - margin and uv[:, 1].max() <= h - 1 - margin
+        )
+
+
+@pytest.fixture(scope="session")
+def models() -> dict[str, RobotModel]:
+    return {name: RobotModel(name) for name in ROBOTS}
+
+
+@pytest.fixture(scope="session")
+def renderers(models: dict[str, RobotModel]) -> Iterator[dict[str, Renderer]]:
+    rend = {name: Renderer(model) for name, model in models.items()}
+    yield rend
+    for r in rend.values():
+        r.close()
+
+
+@pytest.fixture(scope="session")
+def sample_view() -> Callable[..., View]:
+    """``sample_view(model, rng, size=(320, 240), dist=(0.7, 3.0))``: a camera 0.7-3 m from the
+    robot's reference point looking at it (random roll, small aim jitter), random K whose
+    principal point may sit well off-centre."""
+
+    def sample(
+        model: RobotModel,
+        rng: np.random.Generator,
+        size: tuple[int, int] = (320, 240),
+        dist: tuple[float, float] = (0.7, 3.0),
+    ) -> View:
+        w, h = size
+        q = model.random_joints(rng, 1)
+        points = model.surface_points(q)[0]
+        centre = model.centroid(points)
+        direction = rng.normal(size=3)
+        eye = centre + rng.uniform(*dist) * direction / np.linalg.norm(direction)
+        pose = look_at(eye, centre + rng.normal(scale=0.03, size=3), rng.normal(size=3))
+        f = rng.uniform(0.8, 1.3) * w
+        K = np.array(
+            [
+                [f, 0.0, rng.uniform(0.35, 0.65) * w],
+                [0.0, f * rng.uniform(0.97, 1.03), rng.uniform(0.35, 0.65) * h],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        return View(q[0], pose, K, size, points, model.keypoints(q)[0])
+
+    return sample
+
+
+@pytest.fixture(scope="session")
+def tiny_dream(tmp_path_factory):
+    """Six small generated DREAM frames (160x120), shared by the training and inference tests."""
+    from monose3.generate import generate_dataset
+
+    return generate_dataset(
+        tmp_path_factory.mktemp("tiny_dream"), 6, seed=3, workers=0, size=(160, 120), progress=False
+    )

@@ -1,0 +1,84 @@
+"""Fast smoke runs of the benchmarks in benchmarks/ at tiny sizes: they run end to end, print
+their tables, and their measurements obey what the geometry guarantees."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+import torch
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def keep_threads():
+    """The benchmarks' --threads changes torch's global thread count: restore it afterwards."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_visdiff_small(tmp_path: Path) -> None:
+    vd = load("visdiff")
+    out = vd.run(scenes=12, reps=5, seed=1, timesteps=[1, 50, 100])
+    res = out["results"]
+    for name in ("VisDiff g=3", "VisDiff g=1", "FixPer", "FixPer matched", "FixPer@camera"):
+        assert set(res[name]) == {1, 50, 100}
+    g3, g1 = res["VisDiff g=3"], res["VisDiff g=1"]
+    # At t = 1 the noise is tiny: every pose stays in view, rotations move by about a degree.
+    assert g3[1]["in_view"] == 1.0 and g3[1]["rot_mean"] < 3.0
+    assert g3[100]["rot_mean"] > 5 * g3[1]["rot_mean"]
+    # gamma only divides the translation noise: more poses stay in view, rotations spread alike.
+    assert g3[100]["in_view"] >= g1[100]["in_view"]
+    assert abs(g3[100]["rot_mean"] - g1[100]["rot_mean"]) < 20.0
+    # The matched FixPer's std was chosen to reproduce VisDiff's mean rotation angle.
+    for t in (50, 100):
+        assert res["FixPer matched"][t]["rot_mean"] == pytest.approx(g3[t]["rot_mean"], abs=12.0)
+    # FixPer ignores t.
+    assert res["FixPer"][1]["rot_mean"] == pytest.approx(res["FixPer"][100]["rot_mean"], abs=12.0)
+    text = vd.report(out)
+    assert "Effect of gamma" in text and "FixPer matched" in text
+    png = vd.plot(out, tmp_path / "visdiff.png")
+    assert png.stat().st_size > 10_000
+
+
+def test_fixper_std_inversion() -> None:
+    vd = load("visdiff")
+    stds, means = vd.fixper_mean_angle_curve(seed=0, samples=2000)
+    std = vd.std_for_mean_angle(45.0, stds, means)
+    assert float(means[int(round(std))]) == pytest.approx(45.0, abs=1.5)
+    assert vd.std_for_mean_angle(1e3, stds, means) == stds[-1]
+
+
+@pytest.mark.slow
+def test_train_speed_small(capsys: pytest.CaptureFixture[str], keep_threads: None) -> None:
+    ts = load("train_speed")
+    assert ts.main(["--presets", "cpu", "--samples", "2", "--steps", "1", "--threads", "1"]) == 0
+    text = capsys.readouterr().out
+    row = next(line for line in text.splitlines() if line.startswith("cpu    cpu"))
+    values = [float(v) for v in row.split()[2:7]]
+    assert all(v > 0 for v in values)  # render, data, sample, network samples/s and step seconds
+
+
+@pytest.mark.slow
+def test_inference_speed_small(capsys: pytest.CaptureFixture[str], keep_threads: None) -> None:
+    bench = load("inference_speed")
+    assert bench.main(["--presets", "cpu", "--workers", "0", "--repeats", "1", "--no-profile", "--threads", "1"]) == 0
+    text = capsys.readouterr().out
+    rows = [line for line in text.splitlines() if line.startswith("cpu    0 ")]
+    assert [r.split()[2] for r in rows] == ["10", "5", "tracking"]
+    fps = {r.split()[2]: float(r.split()[3 if r.split()[2] == "tracking" else 4]) for r in rows}
+    # Tracking takes one network step, the default ten: it must be clearly faster (loose: shared CI cores).
+    assert fps["tracking"] > 2 * fps["10"]
