@@ -86,6 +86,14 @@ def test_worker_count_does_not_change_the_data(small_set: Path, tmp_path: Path) 
     assert (tmp_path / "s8" / "000000.rgb.jpg").read_bytes() != (small_set / "000000.rgb.jpg").read_bytes()
 
 
+def test_worker_failure_is_reported(tmp_path: Path) -> None:
+    for workers in (0, 1):
+        out = tmp_path / f"w{workers}"
+        (out / "000001.rgb.jpg").mkdir(parents=True)  # frame 1 cannot be written
+        with pytest.raises(Monose3Error, match="cannot write frame 000001"):
+            generate_dataset(out, 3, seed=7, workers=workers, size=SIZE, progress=False)
+
+
 def test_resume_finishes_identically(small_set: Path, tmp_path: Path) -> None:
     out = tmp_path / "r"
     generate_dataset(out, 6, seed=7, workers=0, size=SIZE, progress=False)

@@ -16,6 +16,7 @@ from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
 from monose3.inputs import CameraIntrinsics, check_image_camera, load_camera, load_image, load_joints
 from monose3.render import Renderer, RenderJob
+from monose3.robot import get_spec
 from monose3.viz import draw_overlay, save_image
 
 ASSETS = Path(__file__).parent / "assets"
@@ -39,6 +40,8 @@ def load_estimator(
     """The estimator for a checkpoint (default: the Panda model shipped in the package)."""
     import torch
 
+    if robot is not None:
+        get_spec(robot)  # an unknown robot name fails here, before any loading
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     model, config = load_model(checkpoint or default_checkpoint(), robot=robot, device=device)

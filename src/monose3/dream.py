@@ -585,12 +585,17 @@ def write_frame(
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:  # pragma: no cover - OpenCV failure
         raise Monose3Error(f"could not encode frame {stem} as JPEG")
-    (folder / f"{stem}.rgb.jpg").write_bytes(buf.tobytes())
     name = model.name if model is not None else (robot.name if isinstance(robot, RobotModel | RobotSpec) else robot)
     size = (rgb.shape[1], rgb.shape[0])
     record = frame_record(K, size, joints, pose, keypoint_names, keypoints_base, name, visibility)
     path = folder / f"{stem}.json"
-    _json_dump(path, record)
+    try:
+        (folder / f"{stem}.rgb.jpg").write_bytes(buf.tobytes())
+        _json_dump(path, record)
+    except OSError as err:
+        raise Monose3Error(
+            f"cannot write frame {stem} to {folder}: {err}; check free disk space and permissions"
+        ) from None
     return path
 
 

@@ -78,7 +78,7 @@ class PoseEstimator:
         centroid = self.robot.centroid(points)
         rep = lambda x: x.repeat_interleave(hyps, 0)  # noqa: E731
         return _Batch(
-            images=rep(torch.stack(std_images)),
+            images=rep(torch.stack(std_images)).to(self.device),  # crops then run on the model's device
             K=rep(torch.from_numpy(np.stack(std_K))),
             size=torch.tensor([size], dtype=torch.float64).repeat(len(images) * hyps, 1),
             joints=np.repeat(joints, hyps, axis=0),
@@ -114,7 +114,7 @@ class PoseEstimator:
         renders = torch.stack([image_to_tensor(rgb) for rgb, _ in self.pool.render(jobs)])
         self.timings["render"] += time.perf_counter() - tick
         tick = time.perf_counter()
-        crops = crop_batch(batch.images, boxes, net.render_size)
+        crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
         self.timings["crop"] += time.perf_counter() - tick
         tick = time.perf_counter()
         steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
@@ -190,8 +190,9 @@ class PoseEstimator:
         for _ in range(direct_steps):
             pose = self._predict_x0(batch, pose, 1)
             history.append(pose)
-        self.timings["total"] = time.perf_counter() - start
-        return self._finish(batch, history, len(images), hypotheses)
+        result = self._finish(batch, history, len(images), hypotheses)
+        result.timings["total"] = time.perf_counter() - start
+        return result
 
     def track(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, previous: np.ndarray) -> Estimate:
         """1-step tracking: start from the previous estimates and take one step at a small t."""

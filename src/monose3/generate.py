@@ -19,6 +19,7 @@ import json
 import math
 import multiprocessing as mp
 import os
+import queue
 import time
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
@@ -212,8 +213,9 @@ def sample_scene(rng: np.random.Generator, model: RobotModel, profile: SceneProf
         roll = math.radians(float(np.clip(rng.normal(0.0, profile.roll_std), -30.0, 30.0)))
         rz = np.array([[math.cos(roll), -math.sin(roll), 0.0], [math.sin(roll), math.cos(roll), 0.0], [0.0, 0.0, 1.0]])
         off = profile.offcenter if attempt < _MAX_CAMERA_TRIES // 2 else profile.offcenter / 2
-        u = K[0, 2] + rng.uniform(-off, off) * w / 2.0
-        v = K[1, 2] + rng.uniform(-off, off) * h / 2.0
+        # where the centroid lands: within ``off`` of the principal point, and inside the image
+        u = float(np.clip(K[0, 2] + rng.uniform(-off, off) * w / 2.0, 0.02 * w, 0.98 * w))
+        v = float(np.clip(K[1, 2] + rng.uniform(-off, off) * h / 2.0, 0.02 * h, 0.98 * h))
         ray = np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0])
         rot = _rotation_between(np.array([0.0, 0.0, 1.0]), ray / np.linalg.norm(ray)) @ rz @ rot
         pose = np.eye(4)
@@ -336,7 +338,7 @@ class BackgroundSource:
             img = self._user_image(rng, size)
             if img is not None:
                 return img
-        c1, c2 = _random_color(rng, palette), _random_color(rng, palette)
+        c1, c2 = (_random_color(rng, palette).astype(np.float32) for _ in range(2))
         kind = rng.integers(5)
         if kind == 0:  # colour field with a slow shading
             shade = _smooth_noise(rng, size, 1) - 0.5
@@ -531,18 +533,67 @@ class FrameMaker:
         self.renderer.close()
 
 
-_MAKER: FrameMaker | None = None
+def _worker_main(job: _Job, tasks: mp.Queue, results: mp.Queue) -> None:
+    """A worker process: one pybullet client, frames taken from ``tasks`` until ``None``.
 
-
-def _init_worker(job: _Job) -> None:
-    global _MAKER
+    Every outcome is reported on ``results`` (index, or an error text), so the parent never
+    waits on a worker that failed.
+    """
     cv2.setNumThreads(1)
-    _MAKER = FrameMaker(job)
+    try:
+        maker = FrameMaker(job)
+    except BaseException as err:  # noqa: BLE001 - reported to the parent, which raises
+        results.put(("error", None, f"{type(err).__name__}: {err}"))
+        return
+    try:
+        while (index := tasks.get()) is not None:
+            try:
+                maker.write(index)
+            except BaseException as err:  # noqa: BLE001
+                results.put(("error", index, f"{type(err).__name__}: {err}"))
+                return
+            results.put(("done", index, ""))
+    finally:
+        maker.close()
 
 
-def _write_in_worker(index: int) -> int:
-    assert _MAKER is not None
-    return _MAKER.write(index)
+def _run_workers(job: _Job, todo: list[int], workers: int, bar) -> None:
+    """Make ``todo`` over ``workers`` spawned processes; raise if one fails or dies."""
+    ctx = mp.get_context("spawn")
+    tasks, results = ctx.Queue(), ctx.Queue()
+    for i in todo:
+        tasks.put(i)
+    for _ in range(workers):
+        tasks.put(None)
+    procs = [ctx.Process(target=_worker_main, args=(job, tasks, results), daemon=True) for _ in range(workers)]
+    for p in procs:
+        p.start()
+    remaining = len(todo)
+    try:
+        while remaining:
+            try:
+                kind, index, text = results.get(timeout=1.0)
+            except queue.Empty:
+                dead = [p for p in procs if p.exitcode not in (None, 0)]
+                if dead or all(p.exitcode is not None for p in procs):
+                    raise Monose3Error(
+                        f"a generate worker process exited (code {dead[0].exitcode if dead else 0}) before finishing; "
+                        "when calling generate_dataset from a script, put the call under "
+                        "`if __name__ == '__main__':` (worker processes re-import the script), or pass workers=0"
+                    ) from None
+                continue
+            if kind == "error":
+                where = f"frame {index}" if index is not None else "start-up"
+                raise Monose3Error(f"generate worker failed at {where}: {text}")
+            remaining -= 1
+            bar.update()
+    finally:
+        for p in procs:
+            if remaining:
+                p.terminate()
+            p.join(timeout=10)
+        tasks.close()
+        results.close()
 
 
 def _list_backgrounds(folder: str | Path | None) -> list[Path]:
@@ -598,6 +649,8 @@ def generate_dataset(
         raise Monose3Error(f"image size {w}x{h} is too small; use at least 64x64 (e.g. 640x480)")
     if workers is not None and workers < 0:
         raise Monose3Error(f"--workers must be >= 0, got {workers}")
+    if out.exists() and not out.is_dir():
+        raise Monose3Error(f"--out {out} is a file; give a folder path")
     bg_files = _list_backgrounds(backgrounds)
     settings = {
         "num": int(num),
@@ -632,7 +685,9 @@ def generate_dataset(
     from tqdm import tqdm
 
     bar = tqdm(total=len(todo), desc=f"generate {out.name}", unit="frame", disable=not progress or not todo)
-    if workers == 0 or not todo:
+    if not todo:
+        pass
+    elif workers == 0:
         maker = FrameMaker(job)
         try:
             for i in todo:
@@ -641,11 +696,7 @@ def generate_dataset(
         finally:
             maker.close()
     else:
-        ctx = mp.get_context("spawn")
-        chunk = max(1, min(8, len(todo) // (workers * 8)))
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(job,)) as pool:
-            for _ in pool.imap_unordered(_write_in_worker, todo, chunksize=chunk):
-                bar.update()
+        _run_workers(job, todo, workers, bar)
     bar.close()
     return out
 

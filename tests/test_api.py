@@ -1,0 +1,140 @@
+"""The estimate command and Python API: outputs, and a one-line error for each bad input."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from monose3.api import estimate_pose, load_estimator
+from monose3.checkpoint import save_checkpoint
+from monose3.cli import main
+from monose3.config import NetworkConfig, get_preset
+from monose3.dream import open_dataset
+from monose3.network import Denoiser
+from monose3.robot import RobotModel
+
+TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
+
+
+def _checkpoint(path, robot="panda", xy_bias=0.0):
+    torch.manual_seed(0)
+    config = get_preset("cpu", network=TINY_NET, robot=robot)
+    model = Denoiser(config.network)
+    with torch.no_grad():
+        model.net.fc.bias[0] = xy_bias
+    save_checkpoint(path, {"model": model.state_dict(), "config": config.to_dict(), "step": 0})
+    return path
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_dream, tmp_path_factory):
+    """An image, joints and camera files written the way a user would have them."""
+    d = tmp_path_factory.mktemp("scene")
+    frame = open_dataset(tiny_dream, "panda")[0]
+    (d / "image.jpg").write_bytes(frame.image_path.read_bytes())
+    (d / "joints.json").write_text(json.dumps(RobotModel("panda").joint_dict(frame.joints)))
+    K = frame.K
+    cam = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "width": 160, "height": 120}
+    (d / "camera.json").write_text(json.dumps(cam))
+    _checkpoint(d / "panda.pt")
+    _checkpoint(d / "kuka.pt", robot="kuka")
+    _checkpoint(d / "wild.pt", xy_bias=20.0)
+    return d, frame
+
+
+def _estimate(d, *extra, image="image.jpg", joints="joints.json", camera="camera.json", ck="panda.pt"):
+    return main(
+        [
+            "estimate",
+            "--image",
+            str(d / image),
+            "--joints",
+            str(d / joints),
+            "--camera",
+            str(d / camera),
+            "--checkpoint",
+            str(d / ck),
+            "--out",
+            str(d / "out"),
+            "--chains",
+            "2",
+            *extra,
+        ]
+    )
+
+
+def test_estimate_writes_pose_files_and_overlay(scene, capsys):
+    d, _ = scene
+    assert _estimate(d) == 0
+    data = json.loads((d / "out" / "pose.json").read_text())
+    pose, inv = np.asarray(data["camera_from_base"]), np.asarray(data["base_from_camera"])
+    assert np.allclose(pose @ inv, np.eye(4), atol=1e-9) and data["units"] == "meters"
+    assert yaml.safe_load((d / "out" / "pose.yaml").read_text())["chains"] == 2
+    assert (d / "out" / "overlay.png").stat().st_size > 1000
+    assert "camera_from_base" in capsys.readouterr().out
+
+
+def test_python_api_mirrors_the_cli(scene):
+    d, frame = scene
+    est = load_estimator(d / "panda.pt")
+    result = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=3)
+    est.close()
+    assert result.camera_from_base.shape == (4, 4) and 0 <= result.confidence <= 1
+    assert result.estimate.hypotheses.shape == (1, 3, 4, 4)
+
+
+def _write(d, name, content):
+    (d / name).write_text(content if isinstance(content, str) else json.dumps(content))
+    return name
+
+
+@pytest.mark.parametrize(
+    ("kind", "needle"),
+    [
+        ("missing_image", "image not found"),
+        ("unreadable_image", "could not read"),
+        ("missing_joint", "missing joint"),
+        ("unknown_joint", "unknown joint"),
+        ("nan_joint", "nan"),
+        ("wrong_count", "joint values"),
+        ("missing_camera", "not found"),
+        ("negative_focal", "positive"),
+        ("camera_size_mismatch", "160x120"),
+        ("unknown_robot", "unknown robot"),
+        ("other_robot_checkpoint", "kuka"),
+        ("leaves_image", "outside the image"),
+    ],
+)
+def test_bad_input_gives_one_line_error(scene, kind, needle, capsys):
+    d, frame = scene
+    joints = RobotModel("panda").joint_dict(frame.joints)
+    kw, extra = {}, []
+    if kind == "missing_image":
+        kw["image"] = "nope.jpg"
+    elif kind == "unreadable_image":
+        kw["image"] = _write(d, "text.png", "not an image")
+    elif kind == "missing_joint":
+        kw["joints"] = _write(d, "j1.json", {k: v for k, v in joints.items() if k != "panda_joint3"})
+    elif kind == "unknown_joint":
+        kw["joints"] = _write(d, "j2.json", {**joints, "elbow": 0.1})
+    elif kind == "nan_joint":
+        kw["joints"] = _write(d, "j3.json", json.dumps({**joints, "panda_joint2": float("nan")}))
+    elif kind == "wrong_count":
+        kw["joints"] = _write(d, "j4.json", [0.0, 0.1, 0.2])
+    elif kind == "missing_camera":
+        kw["camera"] = "nocam.json"
+    elif kind == "negative_focal":
+        kw["camera"] = _write(d, "c1.json", {"fx": -1, "fy": 100, "cx": 80, "cy": 60, "width": 160, "height": 120})
+    elif kind == "camera_size_mismatch":
+        kw["camera"] = _write(d, "c2.json", {"fx": 400, "fy": 400, "cx": 320, "cy": 240, "width": 640, "height": 480})
+    elif kind == "unknown_robot":
+        extra = ["--robot", "ur5"]
+    elif kind == "other_robot_checkpoint":
+        kw["ck"], extra = "kuka.pt", ["--robot", "panda"]
+    elif kind == "leaves_image":
+        kw["ck"] = "wild.pt"
+    assert _estimate(d, *extra, **kw) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle.lower() in err.lower(), err
