@@ -69,3 +69,13 @@ def load_model(
     weights = {k: v.float() for k, v in state["model"].items()}
     model.load_state_dict(weights)
     return model.to(device).eval(), config
+
+
+def export_model(checkpoint: str | Path, out: str | Path, half: bool = True) -> Path:
+    """A shippable copy of a training checkpoint: weights (fp16 by default), configuration,
+    robot and step; no optimiser state. ``load_model`` reads it like any checkpoint."""
+    state = read_checkpoint(checkpoint)
+    weights = {k: (v.half() if half and v.is_floating_point() else v) for k, v in state["model"].items()}
+    slim = {"model": weights, "config": state["config"], "robot": state["config"]["robot"], "step": state["step"]}
+    save_checkpoint(out, slim)
+    return Path(out)

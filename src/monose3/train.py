@@ -153,7 +153,7 @@ def train(
     amp = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if device.type == "cuda" else nullcontext
     bar = tqdm(total=tc.max_steps, initial=step, desc="train", unit="step", disable=not progress or rank != 0)
     losses: list[float] = []
-    tick, seen = time.perf_counter(), 0
+    tick, seen, window = time.perf_counter(), 0, []
     for batch in loader:
         if step >= tc.max_steps:
             break
@@ -162,22 +162,17 @@ def train(
         step += 1
         seen += tc.batch_size * world
         losses.append(loss)
+        window.append((loss, parts))
         bar.update(1)
         if log is not None and (step % tc.log_every == 0 or step == tc.max_steps):
             rate = seen / (time.perf_counter() - tick)
-            tick, seen = time.perf_counter(), 0
-            bar.set_postfix(loss=f"{loss:.4f}", samples_s=f"{rate:.1f}")
-            log.write(
-                {
-                    "step": step,
-                    "loss": loss,
-                    "loss_xy": parts["xy"],
-                    "loss_rot": parts["rot"],
-                    "loss_z": parts["z"],
-                    "lr": lr,
-                    "samples_per_s": rate,
-                }
-            )
+            # Logged losses are means over the logging window: single batches are too noisy to read.
+            mean = {k: sum(p[k] for _, p in window) / len(window) for k in ("xy", "rot", "z")}
+            row = {"step": step, "loss": sum(v for v, _ in window) / len(window), "lr": lr, "samples_per_s": rate}
+            row.update({f"loss_{k}": v for k, v in mean.items()})
+            tick, seen, window = time.perf_counter(), 0, []
+            bar.set_postfix(loss=f"{row['loss']:.4f}", samples_s=f"{rate:.1f}")
+            log.write(row)
         if rank == 0 and (step % tc.checkpoint_every == 0 or step == tc.max_steps):
             save_checkpoint(
                 ckpt_path,
@@ -192,9 +187,40 @@ def train(
     bar.close()
     if log is not None:
         log.close()
+        plot_training_logs({out.name: log.path}, out / "loss.png")
     if world > 1:
         dist.barrier()
     return losses
+
+
+def plot_training_logs(logs: dict[str, Path], path: Path, smooth: int = 10) -> Path:
+    """Loss curves of one or more runs (``log.csv``), each smoothed by a running mean."""
+    from monose3.viz import plot_curves
+
+    series = {}
+    for name, csv_path in logs.items():
+        with open(csv_path) as fh:
+            rows = list(csv.DictReader(fh))
+        steps = [int(r["step"]) for r in rows]
+        loss = [float(r["loss"]) for r in rows]
+        kernel = min(smooth, max(1, len(loss)))
+        smoothed = [
+            sum(loss[max(0, i - kernel + 1) : i + 1]) / len(loss[max(0, i - kernel + 1) : i + 1])
+            for i in range(len(loss))
+        ]
+        series[name] = (steps, smoothed)
+    # Runs of different length share one x axis: plot each up to the shortest.
+    n = min(len(s) for s, _ in series.values())
+    x = next(iter(series.values()))[0][:n]
+    return plot_curves(
+        x,
+        {k: v[:n] for k, (_, v) in series.items()},
+        path,
+        xlabel="step",
+        ylabel="loss (Eq. 10, m)",
+        title="training loss (running mean)",
+        logy=True,
+    )
 
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:

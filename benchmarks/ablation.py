@@ -1,0 +1,111 @@
+"""Table II and Table III on the held-out synthetic test sets.
+
+Table II: {FixPer, VisDiff} training x {DirectReg, RevDiff} inference (AUC, mean ADD).
+Table III: the VisDiff model with 10 steps (5 DDIM + 5 direct), 5 steps (5 DDIM) and
+1-step tracking (AUC and FPS). The test sets are independent frames, so tracking starts
+from the ground truth perturbed by an inter-frame motion (default 2 cm and 3 deg per axis,
+about what a robot moves between frames at 30 Hz), not from a previous frame.
+
+    python benchmarks/ablation.py --visdiff runs/visdiff/checkpoint.pt --fixper runs/fixper/checkpoint.pt \
+        --data data/test_reallike data/test_hard --json docs/ablation.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from monose3.api import load_estimator
+from monose3.dream import open_dataset
+from monose3.metrics import add_per_frame, summarize
+from monose3.se3 import euler_xyz_to_matrix
+
+
+def perturb(poses: np.ndarray, rng: np.random.Generator, trans_m: float, rot_deg: float) -> np.ndarray:
+    out = poses.copy()
+    angles = torch.from_numpy(rng.normal(0, np.radians(rot_deg), (len(poses), 3)))
+    out[:, :3, :3] = euler_xyz_to_matrix(angles).numpy() @ poses[:, :3, :3]
+    out[:, :3, 3] += rng.normal(0, trans_m, (len(poses), 3))
+    return out
+
+
+def run(estimator, frames, mode: str, batch: int, limit: int | None, motion: tuple[float, float]) -> dict:
+    """ADD of each frame and FPS for one inference mode."""
+    n = len(frames) if limit is None else min(limit, len(frames))
+    rng = np.random.default_rng(0)
+    adds, seconds = [], 0.0
+    for start in tqdm(range(0, n, batch), desc=mode, leave=False):
+        chunk = [frames[i] for i in range(start, min(start + batch, n))]
+        images, Ks = [f.load_image() for f in chunk], np.stack([f.K for f in chunk])
+        joints = np.stack([f.joints for f in chunk])
+        tick = time.perf_counter()
+        if mode == "tracking":
+            est = estimator.track(images, Ks, joints, perturb(np.stack([f.pose for f in chunk]), rng, *motion))
+        else:
+            sampler, k, m = {
+                "revdiff": ("revdiff", 5, 5),
+                "directreg": ("directreg", 5, 5),
+                "revdiff-5": ("revdiff", 5, 0),
+            }[mode]
+            est = estimator.estimate(images, Ks, joints, sampler=sampler, ddim_steps=k, direct_steps=m)
+        seconds += time.perf_counter() - tick
+        kp = estimator.robot.keypoints(joints)
+        pred = np.einsum("bij,bkj->bki", est.poses[:, :3, :3], kp) + est.poses[:, None, :3, 3]
+        a = add_per_frame(pred, np.stack([f.keypoints_3d for f in chunk]))
+        a[~est.in_view] = np.inf
+        adds.extend(a.tolist())
+    return summarize(np.asarray(adds), fps=n / seconds)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--visdiff", required=True)
+    p.add_argument("--fixper", required=True)
+    p.add_argument("--data", nargs="+", required=True)
+    p.add_argument("--limit", type=int)
+    p.add_argument("--batch-size", type=int, default=4, help="Table II batch; Table III times one image at a time")
+    p.add_argument("--motion", type=float, nargs=2, default=(0.02, 3.0), metavar=("M", "DEG"))
+    p.add_argument("--threads", type=int)
+    p.add_argument("--json")
+    args = p.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    results: dict = {"table2": {}, "table3": {}}
+    for name, ck in (("FixPer", args.fixper), ("VisDiff", args.visdiff)):
+        est = load_estimator(ck)
+        for d in args.data:
+            frames = open_dataset(d, est.robot)
+            for sampler in ("directreg", "revdiff"):
+                s = run(est, frames, sampler, args.batch_size, args.limit, args.motion)
+                results["table2"][f"{name}+{sampler}|{Path(d).name}"] = s
+            if name == "VisDiff":
+                for mode in ("revdiff", "revdiff-5", "tracking"):
+                    results["table3"][f"{mode}|{Path(d).name}"] = run(est, frames, mode, 1, args.limit, args.motion)
+        est.close()
+    sets = [Path(d).name for d in args.data]
+    print("Table II: AUC / mean ADD (mm) per test set")
+    print(f"{'method':26s}" + "".join(f"{s:>28s}" for s in sets))
+    for name in ("FixPer", "VisDiff"):
+        for sampler, label in (("directreg", "DirectReg"), ("revdiff", "RevDiff")):
+            cells = [results["table2"][f"{name}+{sampler}|{s}"] for s in sets]
+            print(
+                f"{name + ' + ' + label:26s}" + "".join(f"{c['auc']:>18.2f} / {1000 * c['mean']:6.1f}" for c in cells)
+            )
+    print("\nTable III (VisDiff): AUC and FPS (one image per call)")
+    print(f"{'steps':26s}" + "".join(f"{s:>28s}" for s in sets))
+    for mode, label in (("revdiff", "10 (5 DDIM + 5 direct)"), ("revdiff-5", "5 (DDIM)"), ("tracking", "1 (tracking)")):
+        cells = [results["table3"][f"{mode}|{s}"] for s in sets]
+        print(f"{label:26s}" + "".join(f"{c['auc']:>16.2f} / {c['fps']:5.2f} FPS" for c in cells))
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1, default=float))
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

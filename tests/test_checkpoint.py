@@ -1,0 +1,57 @@
+"""Checkpoints: atomic writes, robot/preset checks and the fp16 export."""
+
+import pytest
+import torch
+
+from monose3.checkpoint import export_model, load_model, read_checkpoint, save_checkpoint
+from monose3.config import NetworkConfig, get_preset
+from monose3.errors import Monose3Error
+from monose3.network import Denoiser
+
+TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
+
+
+@pytest.fixture
+def checkpoint(tmp_path):
+    torch.manual_seed(0)
+    config = get_preset("cpu", network=TINY_NET)
+    model = Denoiser(config.network)
+    torch.nn.init.normal_(model.net.fc.weight, std=0.01)
+    path = tmp_path / "ck.pt"
+    save_checkpoint(path, {"model": model.state_dict(), "optimizer": {}, "config": config.to_dict(), "step": 7})
+    return path, model
+
+
+def test_save_leaves_no_temporary_files(checkpoint):
+    path, _ = checkpoint
+    assert [p.name for p in path.parent.iterdir()] == ["ck.pt"]
+    assert read_checkpoint(path)["step"] == 7
+
+
+def test_load_checks_robot_and_preset(checkpoint):
+    path, _ = checkpoint
+    with pytest.raises(Monose3Error, match="robot 'panda', not 'kuka'"):
+        load_model(path, robot="kuka")
+    with pytest.raises(Monose3Error, match="preset 'cpu', not 'paper'"):
+        load_model(path, preset="paper")
+
+
+def test_not_a_checkpoint_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_text("hello")
+    with pytest.raises(Monose3Error, match="cannot read checkpoint"):
+        read_checkpoint(bad)
+    with pytest.raises(Monose3Error, match="not found"):
+        read_checkpoint(tmp_path / "missing.pt")
+
+
+def test_fp16_export_is_half_the_size_and_predicts_the_same(checkpoint, tmp_path):
+    path, model = checkpoint
+    out = export_model(path, tmp_path / "small.pt")
+    assert out.stat().st_size < 0.6 * path.stat().st_size
+    loaded, config = load_model(out)
+    x, t = torch.rand(2, 3, 48, 64), torch.tensor([3, 50])
+    model.eval()
+    with torch.no_grad():
+        assert torch.allclose(loaded(x, x, t), model(x, x, t), atol=2e-3)
+    assert config.network == TINY_NET
