@@ -8,7 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+import torch
 
+from monose3.checkpoint import save_checkpoint
+from monose3.config import NetworkConfig, get_preset
+from monose3.network import Denoiser
 from monose3.render import Renderer
 from monose3.robot import RobotModel
 
@@ -109,3 +113,18 @@ def tiny_dream(tmp_path_factory):
     return generate_dataset(
         tmp_path_factory.mktemp("tiny_dream"), 6, seed=3, workers=0, size=(160, 120), progress=False
     )
+
+
+# A network small enough for fast tests; same code path as the presets.
+TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
+
+
+def save_tiny_checkpoint(path, robot: str = "panda", xy_bias: float = 0.0):
+    """A randomly initialised tiny model saved as a checkpoint (``xy_bias`` shifts every v_xy)."""
+    torch.manual_seed(0)
+    config = get_preset("cpu", network=TINY_NET, robot=robot)
+    model = Denoiser(config.network)
+    with torch.no_grad():
+        model.net.fc.bias[0] = xy_bias
+    save_checkpoint(path, {"model": model.state_dict(), "config": config.to_dict(), "step": 0})
+    return path

@@ -4,28 +4,13 @@ import json
 
 import numpy as np
 import pytest
-import torch
 import yaml
+from conftest import save_tiny_checkpoint
 
 from monose3.api import estimate_pose, load_estimator
-from monose3.checkpoint import save_checkpoint
 from monose3.cli import main
-from monose3.config import NetworkConfig, get_preset
 from monose3.dream import open_dataset
-from monose3.network import Denoiser
 from monose3.robot import RobotModel
-
-TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
-
-
-def _checkpoint(path, robot="panda", xy_bias=0.0):
-    torch.manual_seed(0)
-    config = get_preset("cpu", network=TINY_NET, robot=robot)
-    model = Denoiser(config.network)
-    with torch.no_grad():
-        model.net.fc.bias[0] = xy_bias
-    save_checkpoint(path, {"model": model.state_dict(), "config": config.to_dict(), "step": 0})
-    return path
 
 
 @pytest.fixture(scope="module")
@@ -38,9 +23,9 @@ def scene(tiny_dream, tmp_path_factory):
     K = frame.K
     cam = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "width": 160, "height": 120}
     (d / "camera.json").write_text(json.dumps(cam))
-    _checkpoint(d / "panda.pt")
-    _checkpoint(d / "kuka.pt", robot="kuka")
-    _checkpoint(d / "wild.pt", xy_bias=20.0)
+    save_tiny_checkpoint(d / "panda.pt")
+    save_tiny_checkpoint(d / "kuka.pt", robot="kuka")
+    save_tiny_checkpoint(d / "wild.pt", xy_bias=20.0)
     return d, frame
 
 

@@ -2,13 +2,12 @@
 
 import pytest
 import torch
+from conftest import TINY_NET
 
 from monose3.checkpoint import export_model, load_model, read_checkpoint, save_checkpoint
-from monose3.config import NetworkConfig, get_preset
+from monose3.config import get_preset
 from monose3.errors import Monose3Error
 from monose3.network import Denoiser
-
-TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
 
 
 @pytest.fixture

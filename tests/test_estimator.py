@@ -3,14 +3,13 @@
 import numpy as np
 import pytest
 import torch
+from conftest import TINY_NET
 
-from monose3.config import NetworkConfig, get_preset
+from monose3.config import get_preset
 from monose3.diffusion import centroid_frame
 from monose3.dream import open_dataset
 from monose3.estimator import INIT_BOX_FRACTION, PoseEstimator
 from monose3.network import Denoiser
-
-TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
 
 
 @pytest.fixture(scope="module")

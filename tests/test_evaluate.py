@@ -4,27 +4,20 @@ import json
 
 import numpy as np
 import pytest
-import torch
+from conftest import TINY_NET, save_tiny_checkpoint
 
-from monose3.checkpoint import save_checkpoint
 from monose3.cli import main
-from monose3.config import NetworkConfig, get_preset
+from monose3.config import get_preset
 from monose3.dream import open_dataset
 from monose3.estimator import PoseEstimator
 from monose3.evaluate import evaluate_dataset
 from monose3.metrics import add_per_frame
 from monose3.network import Denoiser
 
-TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
-
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
-    torch.manual_seed(0)
-    config = get_preset("cpu", network=TINY_NET)
-    path = tmp_path_factory.mktemp("ck") / "tiny.pt"
-    save_checkpoint(path, {"model": Denoiser(config.network).state_dict(), "config": config.to_dict(), "step": 0})
-    return path
+    return save_tiny_checkpoint(tmp_path_factory.mktemp("ck") / "tiny.pt")
 
 
 def test_add_of_each_frame_matches_the_returned_poses(tiny_dream):

@@ -7,17 +7,16 @@ import sys
 
 import pytest
 import torch
+from conftest import TINY_NET
 from torch.utils.data import default_collate
 
 from monose3.checkpoint import read_checkpoint
 from monose3.cli import main
-from monose3.config import NetworkConfig, get_preset, with_section
+from monose3.config import get_preset, with_section
 from monose3.dream import open_dataset
 from monose3.network import Denoiser
 from monose3.train import learning_rate, train, train_step
 from monose3.training_data import DenoisingSamples, GlobalSampleSampler
-
-TINY_NET = NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(160, 120))
 
 
 def tiny_config(**train):

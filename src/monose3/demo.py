@@ -12,7 +12,7 @@ import numpy as np
 from monose3.api import ASSETS, estimate_pose, format_pose, load_estimator, overlay_image, write_pose_files
 from monose3.inputs import load_camera, load_image, load_joints
 from monose3.metrics import add_per_frame
-from monose3.se3 import rotation_angle_np
+from monose3.se3_average import rotation_angle
 from monose3.viz import save_image
 
 SAMPLE = ASSETS / "sample"
@@ -25,7 +25,7 @@ def pose_errors(robot, joints: np.ndarray, pred: np.ndarray, truth: np.ndarray) 
     return {
         "add_mm": 1000 * float(add_per_frame(to_cam(pred)[None], to_cam(truth)[None])[0]),
         "translation_mm": 1000 * float(np.linalg.norm(pred[:3, 3] - truth[:3, 3])),
-        "rotation_deg": float(np.degrees(rotation_angle_np(pred[:3, :3], truth[:3, :3]))),
+        "rotation_deg": float(np.degrees(rotation_angle(pred[:3, :3], truth[:3, :3]))),
     }
 
 

@@ -79,7 +79,12 @@ class Renderer:
         self.hardware = backend == "egl" or (backend == "auto" and _egl_available())
         if self.hardware:
             self._load_egl()
-        self.body = pb.loadURDF(self.model.spec.urdf, useFixedBase=True, physicsClientId=self.client)
+        try:
+            self.body = pb.loadURDF(self.model.spec.urdf, useFixedBase=True, physicsClientId=self.client)
+        except pb.error as err:
+            raise Monose3Error(
+                f"pybullet cannot load {self.model.spec.urdf}: {err}; check the URDF and its meshes"
+            ) from None
         self._joint_ids = {}
         for i in range(pb.getNumJoints(self.body, physicsClientId=self.client)):
             info = pb.getJointInfo(self.body, i, physicsClientId=self.client)
@@ -220,12 +225,3 @@ class RendererPool:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def check_renderer(robot: str = "panda") -> None:
-    """Fail with a clear message when pybullet cannot render here."""
-    try:
-        r = Renderer(robot, backend="tiny")
-        r.close()
-    except pb.error as err:  # pragma: no cover - environment-specific
-        raise Monose3Error(f"pybullet could not start a renderer: {err}; reinstall pybullet") from None

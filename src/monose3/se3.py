@@ -120,8 +120,3 @@ def rigid_fit_np(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:
     pose[:3, 3] = mu_d - rot @ mu_s
     resid = dst - (src @ rot.T + pose[:3, 3])
     return pose, float(np.sqrt((resid**2).sum(1).mean()))
-
-
-def rotation_angle_np(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
-    """Geodesic angle (radians) between ``[..., 3, 3]`` rotations (numpy)."""
-    return rotation_angle(torch.as_tensor(rot_a), torch.as_tensor(rot_b)).numpy()
