@@ -67,6 +67,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--visdiff", required=True)
     p.add_argument("--fixper", required=True)
+    p.add_argument("--final", help="a longer-trained VisDiff model: extra Table II rows; Table III uses it")
     p.add_argument("--data", nargs="+", required=True)
     p.add_argument("--limit", type=int)
     p.add_argument("--batch-size", type=int, default=4, help="Table II batch; Table III times one image at a time")
@@ -77,27 +78,31 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     results: dict = {"table2": {}, "table3": {}}
-    for name, ck in (("FixPer", args.fixper), ("VisDiff", args.visdiff)):
+    models = [("FixPer", args.fixper), ("VisDiff", args.visdiff)] + (
+        [("VisDiff-final", args.final)] if args.final else []
+    )
+    table3_model = models[-1][0]
+    for name, ck in models:
         est = load_estimator(ck)
         for d in args.data:
             frames = open_dataset(d, est.robot)
             for sampler in ("directreg", "revdiff"):
                 s = run(est, frames, sampler, args.batch_size, args.limit, args.motion)
                 results["table2"][f"{name}+{sampler}|{Path(d).name}"] = s
-            if name == "VisDiff":
+            if name == table3_model:
                 for mode in ("revdiff", "revdiff-5", "tracking"):
                     results["table3"][f"{mode}|{Path(d).name}"] = run(est, frames, mode, 1, args.limit, args.motion)
         est.close()
     sets = [Path(d).name for d in args.data]
     print("Table II: AUC / mean ADD (mm) per test set")
     print(f"{'method':26s}" + "".join(f"{s:>28s}" for s in sets))
-    for name in ("FixPer", "VisDiff"):
+    for name, _ in models:
         for sampler, label in (("directreg", "DirectReg"), ("revdiff", "RevDiff")):
             cells = [results["table2"][f"{name}+{sampler}|{s}"] for s in sets]
             print(
                 f"{name + ' + ' + label:26s}" + "".join(f"{c['auc']:>18.2f} / {1000 * c['mean']:6.1f}" for c in cells)
             )
-    print("\nTable III (VisDiff): AUC and FPS (one image per call)")
+    print(f"\nTable III ({table3_model}): AUC and FPS (one image per call)")
     print(f"{'steps':26s}" + "".join(f"{s:>28s}" for s in sets))
     for mode, label in (("revdiff", "10 (5 DDIM + 5 direct)"), ("revdiff-5", "5 (DDIM)"), ("tracking", "1 (tracking)")):
         cells = [results["table3"][f"{mode}|{s}"] for s in sets]

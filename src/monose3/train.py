@@ -187,38 +187,36 @@ def train(
     bar.close()
     if log is not None:
         log.close()
-        plot_training_logs({out.name: log.path}, out / "loss.png")
+        plot_training_logs(log.path, out / "loss.png")
     if world > 1:
         dist.barrier()
     return losses
 
 
-def plot_training_logs(logs: dict[str, Path], path: Path, smooth: int = 10) -> Path:
-    """Loss curves of one or more runs (``log.csv``), each smoothed by a running mean."""
+def _running_mean(values: list[float], width: int) -> list[float]:
+    return [
+        sum(values[max(0, i - width + 1) : i + 1]) / len(values[max(0, i - width + 1) : i + 1])
+        for i in range(len(values))
+    ]
+
+
+def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path:
+    """The loss of a run (``log.csv``) and its three parts of Eq. 10, smoothed by a running mean."""
     from monose3.viz import plot_curves
 
-    series = {}
-    for name, csv_path in logs.items():
-        with open(csv_path) as fh:
-            rows = list(csv.DictReader(fh))
-        steps = [int(r["step"]) for r in rows]
-        loss = [float(r["loss"]) for r in rows]
-        kernel = min(smooth, max(1, len(loss)))
-        smoothed = [
-            sum(loss[max(0, i - kernel + 1) : i + 1]) / len(loss[max(0, i - kernel + 1) : i + 1])
-            for i in range(len(loss))
-        ]
-        series[name] = (steps, smoothed)
-    # Runs of different length share one x axis: plot each up to the shortest.
-    n = min(len(s) for s, _ in series.values())
-    x = next(iter(series.values()))[0][:n]
+    with open(log_csv) as fh:
+        rows = list(csv.DictReader(fh))
+    curves = {
+        name: _running_mean([float(r[col]) for r in rows], smooth)
+        for name, col in (("total", "loss"), ("v_xy", "loss_xy"), ("rotation", "loss_rot"), ("v_z", "loss_z"))
+    }
     return plot_curves(
-        x,
-        {k: v[:n] for k, (_, v) in series.items()},
+        [int(r["step"]) for r in rows],
+        curves,
         path,
         xlabel="step",
         ylabel="loss (Eq. 10, m)",
-        title="training loss (running mean)",
+        title=f"training loss, running mean of {smooth} log points",
         logy=True,
     )
 
