@@ -16,6 +16,11 @@ from monose3.errors import Monose3Error
 CROP_MARGIN = 1.4
 
 
+def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """The 3x3 pinhole matrix K."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
 def project(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """Pinhole projection of camera-frame ``[B, N, 3]`` points with ``[B, 3, 3]`` K to ``[B, N, 2]``."""
     z = points[..., 2:3].clamp_min(1e-6)
