@@ -12,6 +12,7 @@ import torch
 
 from monose3.checkpoint import save_checkpoint
 from monose3.config import NetworkConfig, get_preset
+from monose3.generate import look_at as look_at_rotation
 from monose3.network import Denoiser
 from monose3.render import Renderer
 from monose3.robot import RobotModel
@@ -19,15 +20,10 @@ from monose3.robot import RobotModel
 ROBOTS = ("panda", "kuka")
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+def look_at(eye: np.ndarray, target: np.ndarray, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-from-base pose (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, up)
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
     pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, y, z])
+    pose[:3, :3] = look_at_rotation(np.asarray(eye, float), np.asarray(target, float), np.asarray(up, float))
     pose[:3, 3] = -pose[:3, :3] @ eye
     return pose
 

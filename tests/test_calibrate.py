@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from conftest import look_at
 
 from monose3.calibrate import (
     REASON_CONSENSUS,
@@ -131,19 +132,8 @@ def test_geometric_median_and_small_sets():
 # ---- scenes ---------------------------------------------------------------------------------
 
 
-def camera_pose() -> np.ndarray:
-    """A static camera 1.9 m in front of the Panda, looking at its middle."""
-    eye, target = np.array([1.7, 0.6, 0.8]), np.array([0.0, 0.0, 0.45])
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(z, x), z])
-    pose[:3, 3] = -pose[:3, :3] @ eye
-    return pose
-
-
-POSE = camera_pose()
+# A static camera about 1.9 m in front of the Panda, looking at its middle.
+POSE = look_at(np.array([1.7, 0.6, 0.8]), np.array([0.0, 0.0, 0.45]))
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ import json
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from conftest import look_at
 
 from monose3.calibrate import ImageFrame
 from monose3.checkpoint import save_checkpoint
@@ -35,18 +36,8 @@ K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
 N = 4
 
 
-def camera_pose() -> np.ndarray:
-    eye, target = np.array([1.7, -0.5, 0.9]), np.array([0.0, 0.0, 0.45])
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(z, x), z])
-    pose[:3, 3] = -pose[:3, :3] @ eye
-    return pose
-
-
-POSE = camera_pose()
+# A static camera about 1.9 m in front of the Panda, looking at its middle.
+POSE = look_at(np.array([1.7, -0.5, 0.9]), np.array([0.0, 0.0, 0.45]))
 
 
 @pytest.fixture(scope="module")
