@@ -200,7 +200,7 @@ def test_dream_keypoint_names(models):
         "panda_link7",
         "panda_hand",
     ]
-    assert len(models["kuka"].keypoint_names) == 8
+    assert models["kuka"].keypoint_names == [f"iiwa7_link_{i}" for i in range(8)]  # DREAM's names
 
 
 def test_custom_spec_keypoint_offsets(tmp_path, models):

@@ -68,7 +68,8 @@ PANDA = RobotSpec(
 KUKA = RobotSpec(
     name="kuka",
     urdf=_pybullet_data("kuka_iiwa/model.urdf"),
-    keypoints=tuple(Keypoint(f"lbr_iiwa_link_{i}", f"lbr_iiwa_link_{i}") for i in range(8)),
+    # DREAM's Kuka sets name the keypoints iiwa7_link_N; pybullet's URDF names the links lbr_iiwa_link_N.
+    keypoints=tuple(Keypoint(f"iiwa7_link_{i}", f"lbr_iiwa_link_{i}") for i in range(8)),
 )
 
 ROBOTS = {"panda": PANDA, "kuka": KUKA}
