@@ -60,11 +60,11 @@ from monose3.errors import Monose3Error
 from monose3.inputs import CameraIntrinsics, load_camera, load_image, load_joints
 from monose3.render import RenderJob
 from monose3.robot import RobotModel
+from monose3.se3 import matrix_to_quat_xyzw_np
 from monose3.se3_average import (
     pose_residuals,
     robust_consensus,
     robust_pose_average,
-    rotation_to_quat,
 )
 from monose3.viz import draw_overlay, image_grid, save_image
 
@@ -370,7 +370,7 @@ class CalibrationResult:
 
 
 def _xyz_quat(pose: np.ndarray) -> list[float]:
-    return [*map(float, pose[:3, 3]), *map(float, rotation_to_quat(pose[:3, :3]))]
+    return [*map(float, pose[:3, 3]), *map(float, matrix_to_quat_xyzw_np(pose[:3, :3]))]
 
 
 def _add_mm(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, gt_keypoints: np.ndarray) -> float:

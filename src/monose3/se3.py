@@ -73,35 +73,42 @@ def axis_angle_to_matrix_np(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * k + (1.0 - c) * (k @ k)
 
 
-def quat_xyzw_to_matrix_np(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) to a 3x3 rotation."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def matrix_to_quat_xyzw_np(rot: np.ndarray) -> np.ndarray:
-    """3x3 rotation to a unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method)."""
-    m = np.asarray(rot, dtype=np.float64)
-    tr = np.trace(m)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
-        q[i] = s / 4
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[k] = (m[k, i] + m[i, k]) / s
-    q = np.array(q)
-    return q if q[3] >= 0 else -q
+    """Batched rotation matrices ``[..., 3, 3]`` to unit quaternions ``[..., 4]`` (x, y, z, w), w >= 0."""
+    m = np.asarray(rot, np.float64)
+    shape = m.shape[:-2]
+    m = m.reshape(-1, 3, 3)
+    # Shepperd: build all four candidates and take the best-conditioned one per matrix.
+    tr = np.trace(m, axis1=1, axis2=2)
+    a = lambda i, j: m[:, i, j]  # noqa: E731
+    cand = np.stack(
+        [
+            np.stack([1 + 2 * a(0, 0) - tr, a(0, 1) + a(1, 0), a(0, 2) + a(2, 0), a(2, 1) - a(1, 2)], -1),
+            np.stack([a(0, 1) + a(1, 0), 1 + 2 * a(1, 1) - tr, a(1, 2) + a(2, 1), a(0, 2) - a(2, 0)], -1),
+            np.stack([a(0, 2) + a(2, 0), a(1, 2) + a(2, 1), 1 + 2 * a(2, 2) - tr, a(1, 0) - a(0, 1)], -1),
+            np.stack([a(2, 1) - a(1, 2), a(0, 2) - a(2, 0), a(1, 0) - a(0, 1), 1 + tr], -1),
+        ],
+        1,
+    )  # [N, 4 candidates, 4]
+    diag = np.stack([m[:, 0, 0], m[:, 1, 1], m[:, 2, 2], tr], -1)
+    best = np.argmax(diag, axis=1)
+    q = cand[np.arange(len(m)), best]
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
+    return q.reshape(*shape, 4)
+
+
+def quat_xyzw_to_matrix_np(q: np.ndarray) -> np.ndarray:
+    """Batched quaternions ``[..., 4]`` (x, y, z, w; any norm) to rotation matrices ``[..., 3, 3]``."""
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    return np.stack([np.stack(r, -1) for r in rows], -2)
 
 
 def rigid_fit_np(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monose3.errors import Monose3Error
+from monose3.se3 import matrix_to_quat_xyzw_np, quat_xyzw_to_matrix_np
 
 # Weiszfeld stops when the update is below these (radians / meters) or after MAX_ITERS.
 ROT_TOL = 1e-10
@@ -60,50 +61,12 @@ def so3_log(rot: np.ndarray) -> np.ndarray:
     Goes through the quaternion, which stays accurate near 0 and near pi, unlike the
     ``arccos(trace)`` formula.
     """
-    q = rotation_to_quat(rot)  # [..., 4] xyzw, w >= 0
+    q = matrix_to_quat_xyzw_np(rot)  # [..., 4] xyzw, w >= 0
     v, w = q[..., :3], q[..., 3]
     s = np.linalg.norm(v, axis=-1)
     angle = 2.0 * np.arctan2(s, w)
     scale = np.where(s < 1e-12, 2.0, angle / np.where(s < 1e-12, 1.0, s))
     return v * scale[..., None]
-
-
-def rotation_to_quat(rot: np.ndarray) -> np.ndarray:
-    """Batched rotation matrices ``[..., 3, 3]`` to unit quaternions ``[..., 4]`` (x, y, z, w), w >= 0."""
-    m = np.asarray(rot, np.float64)
-    shape = m.shape[:-2]
-    m = m.reshape(-1, 3, 3)
-    # Shepperd: build all four candidates and take the best-conditioned one per matrix.
-    tr = np.trace(m, axis1=1, axis2=2)
-    a = lambda i, j: m[:, i, j]  # noqa: E731
-    cand = np.stack(
-        [
-            np.stack([1 + 2 * a(0, 0) - tr, a(0, 1) + a(1, 0), a(0, 2) + a(2, 0), a(2, 1) - a(1, 2)], -1),
-            np.stack([a(0, 1) + a(1, 0), 1 + 2 * a(1, 1) - tr, a(1, 2) + a(2, 1), a(0, 2) - a(2, 0)], -1),
-            np.stack([a(0, 2) + a(2, 0), a(1, 2) + a(2, 1), 1 + 2 * a(2, 2) - tr, a(1, 0) - a(0, 1)], -1),
-            np.stack([a(2, 1) - a(1, 2), a(0, 2) - a(2, 0), a(1, 0) - a(0, 1), 1 + tr], -1),
-        ],
-        1,
-    )  # [N, 4 candidates, 4]
-    diag = np.stack([m[:, 0, 0], m[:, 1, 1], m[:, 2, 2], tr], -1)
-    best = np.argmax(diag, axis=1)
-    q = cand[np.arange(len(m)), best]
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
-    return q.reshape(*shape, 4)
-
-
-def quat_to_rotation(q: np.ndarray) -> np.ndarray:
-    """Batched quaternions ``[..., 4]`` (x, y, z, w; any norm) to rotation matrices ``[..., 3, 3]``."""
-    q = np.asarray(q, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-    return np.stack([np.stack(r, -1) for r in rows], -2)
 
 
 def rotation_angle(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
@@ -153,13 +116,13 @@ def quaternion_mean(rots: np.ndarray, weights: np.ndarray | None = None) -> np.n
     its angle / N."""
     r = _check_rotations(rots)
     w = _weights(len(r), weights)
-    q = rotation_to_quat(r)
+    q = matrix_to_quat_xyzw_np(r)
     # q and -q are the same rotation: flip each to the hemisphere of the first before averaging.
     q = q * np.where(q @ q[0] < 0, -1.0, 1.0)[:, None]
     mean = (w[:, None] * q).sum(0)
     if np.linalg.norm(mean) < 1e-12:  # antipodal cancellation: fall back to the eigenvector method
         mean = np.linalg.eigh((w[:, None, None] * q[:, :, None] * q[:, None, :]).sum(0))[1][:, -1]
-    return quat_to_rotation(mean)
+    return quat_xyzw_to_matrix_np(mean)
 
 
 def rotation_l1_median(
