@@ -56,13 +56,11 @@ def run(estimator, frames, mode: str, batch: int, limit: int | None, motion: tup
             }[mode]
             est = estimator.estimate(images, Ks, joints, sampler=sampler, ddim_steps=k, direct_steps=m)
         seconds += time.perf_counter() - tick
-        kp = estimator.robot.keypoints(joints)
-        pred = np.einsum("bij,bkj->bki", est.poses[:, :3, :3], kp) + est.poses[:, None, :3, 3]
+        pred = estimator.robot.keypoints(joints, est.poses)
         gt = np.stack([f.keypoints_3d for f in chunk])
         a = add_per_frame(pred, gt)
         if mode == "tracking":  # what the step starts from, to judge what it adds
-            start_kp = np.einsum("bij,bkj->bki", start[:, :3, :3], kp) + start[:, None, :3, 3]
-            start_adds.extend(add_per_frame(start_kp, gt).tolist())
+            start_adds.extend(add_per_frame(estimator.robot.keypoints(joints, start), gt).tolist())
         a[~est.in_view] = np.inf
         adds.extend(a.tolist())
     result = summarize(np.asarray(adds), fps=n / seconds)

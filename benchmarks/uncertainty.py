@@ -66,8 +66,7 @@ def measure(estimator, folder: str | Path, limit: int | None, chains: int, batch
             stochastic=chains > 1,
             seed=seed + b,
         )
-        kp = estimator.robot.keypoints(joints)  # [B, K, 3] base frame
-        pred = np.einsum("bij,bkj->bki", est.poses[:, :3, :3], kp) + est.poses[:, None, :3, 3]
+        pred = estimator.robot.keypoints(joints, est.poses)
         pred[~est.in_view] = np.nan  # out of view: a failed estimate (infinite ADD)
         adds.append(add_per_frame(pred, np.stack([f.keypoints_3d for f in frames])))
         spread_mm.append(est.spread_mm)

@@ -305,3 +305,14 @@ def test_centroid_is_bounding_box_centre():
     np.testing.assert_allclose(c, (pts.min(1) + pts.max(1)) / 2)
     assert np.abs(c - pts.mean(1)).min() > 0.5
     np.testing.assert_allclose(RobotModel.centroid(pts[0]), c[0])
+
+
+def test_keypoints_in_the_camera_frame(models):
+    model = models["panda"]
+    q = model.random_joints(np.random.default_rng(5), 3)
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, :3, 3] = [[0.1, -0.2, 1.5], [0.0, 0.0, 2.0], [0.3, 0.1, 0.9]]
+    poses[1, :3, :3] = [[0, 1, 0], [0, 0, -1], [-1, 0, 0]]
+    base = model.keypoints(q)
+    expected = np.stack([base[i] @ poses[i, :3, :3].T + poses[i, :3, 3] for i in range(3)])
+    np.testing.assert_allclose(model.keypoints(q, poses), expected, atol=1e-12)

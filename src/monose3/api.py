@@ -132,7 +132,7 @@ def overlay_image(
     finally:
         if own:
             renderer.close()
-    kp = renderer.model.keypoints(np.asarray(joints)[None])[0] @ pose[:3, :3].T + pose[:3, 3]
+    kp = renderer.model.keypoints(np.asarray(joints)[None], pose[None])[0]
     uv = kp[:, :2] / kp[:, 2:] * np.diag(K)[:2] + K[:2, 2]
     gt_uv = None
     if gt_keypoints is not None:

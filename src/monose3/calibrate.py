@@ -374,7 +374,7 @@ def _xyz_quat(pose: np.ndarray) -> list[float]:
 
 
 def _add_mm(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, gt_keypoints: np.ndarray) -> float:
-    kp = robot.keypoints(np.asarray(joints, np.float64)[None])[0] @ pose[:3, :3].T + pose[:3, 3]
+    kp = robot.keypoints(np.asarray(joints, np.float64)[None], pose[None])[0]
     return float(1000.0 * np.linalg.norm(kp - gt_keypoints, axis=1).mean())
 
 

@@ -20,8 +20,7 @@ SAMPLE = ASSETS / "sample"
 
 def pose_errors(robot, joints: np.ndarray, pred: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     """ADD over the keypoints (mm), translation error (mm) and rotation error (deg)."""
-    kp = robot.keypoints(joints[None])[0]
-    to_cam = lambda pose: kp @ pose[:3, :3].T + pose[:3, 3]  # noqa: E731
+    to_cam = lambda pose: robot.keypoints(joints[None], pose[None])[0]  # noqa: E731
     return {
         "add_mm": 1000 * float(add_per_frame(to_cam(pred)[None], to_cam(truth)[None])[0]),
         "translation_mm": 1000 * float(np.linalg.norm(pred[:3, 3] - truth[:3, 3])),

@@ -75,8 +75,7 @@ def evaluate_dataset(
             )
         result.seconds += time.perf_counter() - tick
         previous = est.poses if est.in_view.all() else None
-        kp_base = estimator.robot.keypoints(joints)
-        pred = np.einsum("bij,bkj->bki", est.poses[:, :3, :3], kp_base) + est.poses[:, None, :3, 3]
+        pred = estimator.robot.keypoints(joints, est.poses)
         gt = np.stack([f.keypoints_3d for f in batch])
         adds = add_per_frame(pred, gt)
         adds[~est.in_view] = np.inf

@@ -337,12 +337,17 @@ class RobotModel:
             poses[:, self.link_index[j.child]] = poses[:, self.link_index[j.parent]] @ j.origin @ motion
         return poses
 
-    def keypoints(self, joints: np.ndarray) -> np.ndarray:
-        """``[B, n_keypoints, 3]`` keypoints in the base frame."""
+    def keypoints(self, joints: np.ndarray, camera_from_base: np.ndarray | None = None) -> np.ndarray:
+        """``[B, n_keypoints, 3]`` keypoints in the base frame, or in the camera frame when
+        ``camera_from_base`` ``[B, 4, 4]`` is given."""
         idx = [self.link_index[kp.link] for kp in self.spec.keypoints]
         poses = self.link_poses(joints)[:, idx]
         offsets = np.array([kp.offset for kp in self.spec.keypoints])
-        return np.einsum("bkij,kj->bki", poses[..., :3, :3], offsets) + poses[..., :3, 3]
+        points = np.einsum("bkij,kj->bki", poses[..., :3, :3], offsets) + poses[..., :3, 3]
+        if camera_from_base is None:
+            return points
+        cam = np.asarray(camera_from_base, np.float64).reshape(-1, 4, 4)
+        return np.einsum("bij,bkj->bki", cam[:, :3, :3], points) + cam[:, None, :3, 3]
 
     @cached_property
     def _surface_local(self) -> tuple[np.ndarray, np.ndarray]:

@@ -159,7 +159,7 @@ def track_sequence(
         gt = getattr(frame, "keypoints_3d", None)
         if gt is not None:
             if result.in_view:
-                kp = robot.keypoints(q)[0] @ result.camera_from_base[:3, :3].T + result.camera_from_base[:3, 3]
+                kp = robot.keypoints(q, result.camera_from_base[None])[0]
                 result.add_mm = float(1000.0 * np.linalg.norm(kp - np.asarray(gt), axis=1).mean())
             else:
                 result.add_mm = float("inf")
