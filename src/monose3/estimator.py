@@ -18,6 +18,7 @@ from monose3.network import Denoiser, apply_update, raw_to_update
 from monose3.render import RendererPool
 from monose3.robot import RobotModel
 from monose3.se3 import euler_xyz_to_matrix, make_pose
+from monose3.se3_average import rotation_angle
 from monose3.views import crop_batch, crop_geometry, image_to_tensor, render_jobs
 
 # RoboPose's fixed initial orientation (camera-from-reference-point): the robot seen from the front.
@@ -228,8 +229,7 @@ class PoseEstimator:
             m = int(np.argmin(dist.sum(1)))
             chosen.append(final[b, m])
             spread_mm.append(1000 * dist[m].sum() / max(1, hyps - 1))
-            rel = np.einsum("hji,jk->hik", final[b, :, :3, :3], final[b, m, :3, :3])
-            ang = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+            ang = np.degrees(rotation_angle(final[b, :, :3, :3], final[b, m, :3, :3]))
             spread_deg.append(ang.sum() / max(1, hyps - 1))
         poses = np.stack(chosen)
         ref = centroid_frame(torch.from_numpy(poses), batch.centroid[::hyps])
