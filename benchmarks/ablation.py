@@ -24,15 +24,7 @@ from tqdm import tqdm
 from monose3.api import load_estimator
 from monose3.dream import open_dataset
 from monose3.metrics import add_per_frame, summarize
-from monose3.se3 import euler_xyz_to_matrix
-
-
-def perturb(poses: np.ndarray, rng: np.random.Generator, trans_m: float, rot_deg: float) -> np.ndarray:
-    out = poses.copy()
-    angles = torch.from_numpy(rng.normal(0, np.radians(rot_deg), (len(poses), 3)))
-    out[:, :3, :3] = euler_xyz_to_matrix(angles).numpy() @ poses[:, :3, :3]
-    out[:, :3, 3] += rng.normal(0, trans_m, (len(poses), 3))
-    return out
+from monose3.se3 import perturb_poses_np
 
 
 def run(estimator, frames, mode: str, batch: int, limit: int | None, motion: tuple[float, float]) -> dict:
@@ -46,7 +38,7 @@ def run(estimator, frames, mode: str, batch: int, limit: int | None, motion: tup
         joints = np.stack([f.joints for f in chunk])
         tick = time.perf_counter()
         if mode == "tracking":
-            start = perturb(np.stack([f.pose for f in chunk]), rng, *motion)
+            start = perturb_poses_np(np.stack([f.pose for f in chunk]), rng, *motion)
             est = estimator.track(images, Ks, joints, start)
         else:
             sampler, k, m = {

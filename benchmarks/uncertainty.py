@@ -15,13 +15,19 @@ annotated keypoints (``metrics.add_per_frame``).
 * kept: in view and not flagged -- the frames a user would trust; their AUC (metrics.auc, over the
   kept frames only) and mean ADD against those of all frames say what trusting the flag buys.
 
+``--prior M DEG`` measures the flag where the estimator starts from a user's approximate pose
+(``monose3 estimate --prior``): each frame's prior is its ground truth moved by Gaussian noise
+of M metres and DEG degrees per axis (``se3.perturb_poses_np``), and the chains refine it from
+``InferenceConfig.prior_t``. A model that gets no frame right from RoboPose's start still gets
+some right from a prior, so this is where false alarms can be counted.
+
 The same numbers over a sweep of thresholds give the table and the recall / false-alarm curve;
 the recommended threshold is the one with the highest recall whose false-alarm rate stays at or
 under ``--max-false-alarm`` (a flag that fires on many good frames gets ignored), and the
 threshold maximising recall - false-alarm (Youden's J) is printed next to it.
 
     python benchmarks/uncertainty.py --checkpoint CK --data data/test_reallike data/test_hard \
-        [--limit 60] [--chains 4] [--plot docs/uncertainty.png]
+        [--limit 60] [--chains 4] [--prior 0.03 6] [--plot docs/uncertainty.png]
 """
 
 from __future__ import annotations
@@ -36,10 +42,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.api import UNRELIABLE_MM, load_estimator
+from monose3.api import UNRELIABLE_MM, load_estimator, prior_arguments
 from monose3.checkpoint import read_checkpoint
 from monose3.dream import open_dataset
 from monose3.metrics import add_per_frame, auc
+from monose3.se3 import perturb_poses_np
 
 ROOT = Path(__file__).resolve().parents[1]
 FAILURE_M = 0.05
@@ -50,14 +57,29 @@ MAX_FALSE_ALARM = 0.10
 # ---- measuring --------------------------------------------------------------------------------
 
 
-def measure(estimator, folder: str | Path, limit: int | None, chains: int, batch_size: int, seed: int) -> dict:
-    """Per-frame ADD (m; inf when out of view), chain spread (mm, deg) and in-view flag of one set."""
+def measure(
+    estimator,
+    folder: str | Path,
+    limit: int | None,
+    chains: int,
+    batch_size: int,
+    seed: int,
+    prior_error: tuple[float, float] | None = None,
+) -> dict:
+    """Per-frame ADD (m; inf when out of view), chain spread (mm, deg) and in-view flag of one
+    set; with ``prior_error`` (m, deg per axis) also the ADD of each frame's prior."""
     ds = open_dataset(folder, estimator.robot)
     n = len(ds) if limit is None else min(limit, len(ds))
-    adds, spread_mm, spread_deg, in_view, names = [], [], [], [], []
+    rng = np.random.default_rng(seed)
+    adds, prior_adds, spread_mm, spread_deg, in_view, names = [], [], [], [], [], []
     for b, start in enumerate(range(0, n, batch_size)):
         frames = [ds[i] for i in range(start, min(start + batch_size, n))]
         joints = np.stack([f.joints for f in frames])
+        truth = np.stack([f.keypoints_3d for f in frames])
+        priors = None
+        if prior_error is not None:
+            priors = perturb_poses_np(np.stack([f.pose for f in frames]), rng, *prior_error)
+            prior_adds.append(add_per_frame(estimator.robot.keypoints(joints, priors), truth))
         est = estimator.estimate(
             [f.load_image() for f in frames],
             np.stack([f.K for f in frames]),
@@ -65,10 +87,11 @@ def measure(estimator, folder: str | Path, limit: int | None, chains: int, batch
             hypotheses=chains,
             stochastic=chains > 1,
             seed=seed + b,
+            **prior_arguments(estimator, priors),
         )
         pred = estimator.robot.keypoints(joints, est.poses)
         pred[~est.in_view] = np.nan  # out of view: a failed estimate (infinite ADD)
-        adds.append(add_per_frame(pred, np.stack([f.keypoints_3d for f in frames])))
+        adds.append(add_per_frame(pred, truth))
         spread_mm.append(est.spread_mm)
         spread_deg.append(est.spread_deg)
         in_view.append(est.in_view.astype(bool))
@@ -81,12 +104,14 @@ def measure(estimator, folder: str | Path, limit: int | None, chains: int, batch
         "spread_mm": np.concatenate(spread_mm),
         "spread_deg": np.concatenate(spread_deg),
         "in_view": np.concatenate(in_view),
+        "prior_add": np.concatenate(prior_adds) if prior_adds else None,
     }
 
 
 def pool(sets: dict[str, dict]) -> dict:
-    keys = ("add", "spread_mm", "spread_deg", "in_view")
-    return {k: np.concatenate([s[k] for s in sets.values()]) for k in keys}
+    first = next(iter(sets.values()))
+    keys = [k for k in first if k != "names"]
+    return {k: None if first[k] is None else np.concatenate([s[k] for s in sets.values()]) for k in keys}
 
 
 # ---- statistics -------------------------------------------------------------------------------
@@ -180,6 +205,16 @@ def _num(v: float, spec: str = "6.1f") -> str:
     return format(v, spec) if np.isfinite(v) else "-".rjust(int(width) if width else 1)
 
 
+def _prior_line(data: dict) -> list[str]:
+    if data.get("prior_add") is None:
+        return []
+    prior = data["prior_add"]
+    return [
+        f"the priors themselves: AUC {auc(prior):.2f}, mean ADD {1000 * prior.mean():.1f} mm, "
+        f"{int((prior <= FAILURE_M).sum())} within {1000 * FAILURE_M:.0f} mm"
+    ]
+
+
 def table(data: dict, thresholds: list[float]) -> list[str]:
     lines = [
         f"{'thr mm':>7} {'flagged':>7} {'recall':>7} {'rec(inview)':>11} {'+oov err':>8} {'false al':>8} "
@@ -196,7 +231,18 @@ def table(data: dict, thresholds: list[float]) -> list[str]:
     return lines
 
 
-def report(sets: dict[str, dict], chains: int, checkpoint: str, step: int | None, max_false_alarm: float) -> str:
+def start_label(prior_error: tuple[float, float] | None, prior_t: int) -> str:
+    if prior_error is None:
+        return "start: RoboPose's initialisation"
+    m, deg = prior_error
+    return (
+        f"start: a prior = ground truth moved by {1000 * m:.0f} mm and {deg:g} deg per axis, refined from t = {prior_t}"
+    )
+
+
+def report(
+    sets: dict[str, dict], chains: int, checkpoint: str, step: int | None, max_false_alarm: float, start: str
+) -> str:
     thresholds = sorted({*SWEEP_MM, UNRELIABLE_MM})
     groups = dict(sets)
     if len(sets) > 1:
@@ -204,6 +250,7 @@ def report(sets: dict[str, dict], chains: int, checkpoint: str, step: int | None
     lines = [
         f"Uncertainty flag: {chains} stochastic chains per frame, checkpoint {checkpoint}"
         + (f" (step {step})" if step is not None else ""),
+        start,
         f"failure = ADD > {1000 * FAILURE_M:.0f} mm or out of view; flagged = in view and spread > threshold; "
         "recall = failures flagged / failures (rec(inview): over in-view failures; +oov err: flag or the "
         "out-of-view error of api.estimate_pose); false al = good frames flagged / good frames; "
@@ -218,6 +265,7 @@ def report(sets: dict[str, dict], chains: int, checkpoint: str, step: int | None
             f"{o['n'] - o['failures']} good",
             f"all frames: AUC {o['auc']:.2f}, mean ADD {_num(o['mean_mm'], '.1f')} mm, median "
             f"{_num(o['median_mm'], '.1f')} mm (over in-view frames)",
+            *_prior_line(data),
             f"at api.UNRELIABLE_MM = {UNRELIABLE_MM:.0f} mm: recall {_pct(s['recall_flag']).strip()} % "
             f"({_pct(s['recall_caught']).strip()} % with the out-of-view error), false alarms "
             f"{_pct(s['false_alarm']).strip()} %; kept {s['kept']} frames: AUC {_num(s['kept_auc'], '.2f')} "
@@ -271,7 +319,9 @@ def threshold_grid(data: dict) -> np.ndarray:
 # ---- plot -------------------------------------------------------------------------------------
 
 
-def plot(sets: dict[str, dict], path: Path, chains: int, step: int | None, recommended: float | None) -> Path:
+def plot(
+    sets: dict[str, dict], path: Path, chains: int, step: int | None, recommended: float | None, start: str
+) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -335,7 +385,8 @@ def plot(sets: dict[str, dict], path: Path, chains: int, step: int | None, recom
     ax1.yaxis.set_major_formatter(plain)
     ax1.yaxis.set_minor_formatter(NullFormatter())
     n = sum(len(d["add"]) for d in sets.values())
-    fig.suptitle(f"Chain spread as an uncertainty: {n} frames, {chains} chains" + (f", step {step}" if step else ""))
+    title = f"Chain spread as an uncertainty: {n} frames, {chains} chains" + (f", step {step}" if step else "")
+    fig.suptitle(f"{title}\n{start}", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -358,6 +409,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     p.add_argument("--plot", default=str(ROOT / "docs" / "uncertainty.png"), help="output figure ('' for none)")
     p.add_argument("--json", help="also write the per-frame numbers here")
+    p.add_argument(
+        "--prior", type=float, nargs=2, metavar=("M", "DEG"), help="start from ground truth moved by this much per axis"
+    )
     args = p.parse_args(argv)
     if args.chains < 2:
         p.error("--chains must be at least 2 (the spread needs several chains)")
@@ -367,15 +421,17 @@ def main(argv: list[str] | None = None) -> int:
     estimator = load_estimator(args.checkpoint, workers=0, device=args.device)
     try:
         sets = {
-            Path(d).name: measure(estimator, d, args.limit, args.chains, args.batch_size, args.seed) for d in args.data
+            Path(d).name: measure(estimator, d, args.limit, args.chains, args.batch_size, args.seed, args.prior)
+            for d in args.data
         }
     finally:
         estimator.close()
-    print(report(sets, args.chains, args.checkpoint, step, args.max_false_alarm))
+    start = start_label(args.prior, estimator.config.inference.prior_t)
+    print(report(sets, args.chains, args.checkpoint, step, args.max_false_alarm, start))
     pooled = pool(sets)
     best, _ = recommend([flag_stats(pooled, t) for t in sorted({*SWEEP_MM, UNRELIABLE_MM})], args.max_false_alarm)
     if args.plot:
-        print(f"plot: {plot(sets, Path(args.plot), args.chains, step, best['threshold_mm'] if best else None)}")
+        print(f"plot: {plot(sets, Path(args.plot), args.chains, step, best['threshold_mm'] if best else None, start)}")
     if args.json:
         out = {
             name: {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in d.items()}
@@ -383,7 +439,9 @@ def main(argv: list[str] | None = None) -> int:
         }
         for d in out.values():
             d["add"] = [x if np.isfinite(x) else None for x in d["add"]]
-        Path(args.json).write_text(json.dumps({"chains": args.chains, "step": step, "sets": out}, indent=1))
+        Path(args.json).write_text(
+            json.dumps({"chains": args.chains, "step": step, "start": start, "sets": out}, indent=1)
+        )
         print(f"per-frame numbers: {args.json}")
     print(f"({time.perf_counter() - tick:.0f} s)")
     return 0

@@ -123,3 +123,36 @@ def test_bad_input_gives_one_line_error(scene, kind, needle, capsys):
     assert _estimate(d, *extra, **kw) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle.lower() in err.lower(), err
+
+
+def _add(frame, pose):
+    kps = RobotModel("panda").keypoints(frame.joints[None], pose[None])[0]
+    return float(np.linalg.norm(kps - frame.keypoints_3d, axis=1).mean())
+
+
+def test_prior_is_refined_instead_of_robopose_start(scene):
+    """The tiny model barely moves a pose, so a good prior must give a good estimate and no prior a bad one."""
+    d, frame = scene
+    est = load_estimator(d / "panda.pt")
+    try:
+        with_prior = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=1, prior=frame.pose)
+        without = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=1)
+    finally:
+        est.close()
+    assert np.allclose(with_prior.estimate.history[0][0, 0], frame.pose)
+    assert _add(frame, with_prior.camera_from_base) < 0.02 < _add(frame, without.camera_from_base)
+
+
+def test_estimate_cli_takes_a_previous_pose_file_as_prior(scene):
+    d, frame = scene
+    (d / "prior.json").write_text(json.dumps({"camera_from_base": frame.pose.tolist()}))
+    assert _estimate(d, "--prior", str(d / "prior.json"), "--chains", "1") == 0
+    pose = np.asarray(json.loads((d / "out" / "pose.json").read_text())["camera_from_base"])
+    assert _add(frame, pose) < 0.02
+
+
+def test_inverted_prior_is_refused(scene, capsys):
+    d, frame = scene
+    (d / "inv.json").write_text(json.dumps({"camera_from_base": np.linalg.inv(frame.pose).tolist()}))
+    assert _estimate(d, "--prior", str(d / "inv.json")) == 2
+    assert "prior pose puts the robot outside the image" in capsys.readouterr().err

@@ -82,3 +82,22 @@ def test_inference_speed_small(capsys: pytest.CaptureFixture[str], keep_threads:
     fps = {r.split()[2]: float(r.split()[3 if r.split()[2] == "tracking" else 4]) for r in rows}
     # Tracking takes one network step, the default ten: it must be clearly faster (loose: shared CI cores).
     assert fps["tracking"] > 2 * fps["10"]
+
+
+def test_uncertainty_from_priors(tmp_path: Path, tiny_dream: Path, capsys, keep_threads: None) -> None:
+    """Exact priors: every prior is within 5 cm; the report and the per-frame JSON say so."""
+    import json
+
+    from conftest import save_tiny_checkpoint
+
+    ck = save_tiny_checkpoint(tmp_path / "tiny.pt")
+    unc = load("uncertainty")
+    argv = ["--checkpoint", str(ck), "--data", str(tiny_dream), "--chains", "2", "--prior", "0", "0"]
+    argv += ["--plot", str(tmp_path / "u.png"), "--json", str(tmp_path / "u.json")]
+    assert unc.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "start: a prior = ground truth moved by 0 mm" in out
+    assert "mean ADD 0.0 mm, 6 within 50 mm" in out.split("the priors themselves:")[1].splitlines()[0]
+    data = json.loads((tmp_path / "u.json").read_text())["sets"][tiny_dream.name]
+    assert len(data["add"]) == 6 and max(data["prior_add"]) < 1e-4
+    assert (tmp_path / "u.png").stat().st_size > 10_000

@@ -12,6 +12,7 @@ from monose3.inputs import (
     load_camera,
     load_image,
     load_joints,
+    load_pose,
     scale_camera,
 )
 from monose3.robot import RobotModel
@@ -195,3 +196,35 @@ def test_check_image_camera_and_scale():
     # pixel-centre convention: the centre of pixel 0 is at 0, so cx' = (cx + 0.5) * 2 - 0.5
     assert big.cx == pytest.approx(2 * cam.cx + 0.5) and big.cy == pytest.approx(2 * cam.cy + 0.5)
     assert scale_camera(big, 640, 480).cx == pytest.approx(cam.cx)
+
+
+# ---- poses ------------------------------------------------------------------------------------
+
+POSE = np.array([[0.0, 1.0, 0.0, 0.1], [0.0, 0.0, -1.0, 0.2], [-1.0, 0.0, 0.0, 1.5], [0.0, 0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("suffix", [".json", ".yaml"])
+def test_load_pose_layouts(tmp_path, suffix):
+    assert np.allclose(load_pose(write(tmp_path / f"a{suffix}", {"camera_from_base": POSE.tolist()})), POSE)
+    assert np.allclose(load_pose(write(tmp_path / f"b{suffix}", POSE.tolist())), POSE)
+    inverse = {"base_from_camera": np.linalg.inv(POSE).tolist()}
+    assert np.allclose(load_pose(write(tmp_path / f"c{suffix}", inverse)), POSE)
+
+
+def test_load_pose_errors(tmp_path):
+    with pytest.raises(Monose3Error, match="not found"):
+        load_pose(tmp_path / "none.json")
+    with pytest.raises(Monose3Error, match="no camera_from_base"):
+        load_pose(write(tmp_path / "a.json", {"pose": POSE.tolist()}))
+    with pytest.raises(Monose3Error, match="4x4"):
+        load_pose(write(tmp_path / "b.json", POSE[:3].tolist()))
+    with pytest.raises(Monose3Error, match="NaN"):
+        load_pose(write(tmp_path / "c.yaml", [[float("nan")] * 4] * 4))
+    mirrored = POSE.copy()
+    mirrored[:3, 0] *= -1
+    with pytest.raises(Monose3Error, match="not a rigid transform"):
+        load_pose(write(tmp_path / "d.json", mirrored.tolist()))
+    scaled = POSE.copy()
+    scaled[:3, :3] *= 1000
+    with pytest.raises(Monose3Error, match="not a rigid transform"):
+        load_pose(write(tmp_path / "e.json", scaled.tolist()))

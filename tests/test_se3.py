@@ -13,6 +13,7 @@ from monose3.se3 import (
     gram_schmidt_6d,
     make_pose,
     matrix_to_quat_xyzw_np,
+    perturb_poses_np,
     quat_xyzw_to_matrix_np,
     rigid_fit_np,
     rotation_angle,
@@ -199,3 +200,14 @@ def test_rigid_fit_noise_and_reflection():
     pose, resid = rigid_fit_np(src, mirrored)
     assert np.linalg.det(pose[:3, :3]) == pytest.approx(1.0)
     assert resid > 0.1
+
+
+def test_perturb_poses_keeps_them_rigid_with_the_asked_spread():
+    poses = np.repeat(np.eye(4)[None], 4000, 0)
+    moved = perturb_poses_np(poses, np.random.default_rng(0), 0.02, 3.0)
+    rot = moved[:, :3, :3]
+    assert np.allclose(rot @ rot.transpose(0, 2, 1), np.eye(3), atol=1e-9) and np.allclose(moved[:, 3], [0, 0, 0, 1])
+    assert np.std(moved[:, :3, 3]) == pytest.approx(0.02, rel=0.05)
+    # per-axis angle std of 3 deg: the total angle's RMS is sqrt(3) * 3 deg for small angles
+    angles = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert np.sqrt(np.mean(angles**2)) == pytest.approx(np.sqrt(3) * 3.0, rel=0.05)

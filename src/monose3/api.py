@@ -14,7 +14,7 @@ import yaml
 from monose3.checkpoint import load_model
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
-from monose3.inputs import CameraIntrinsics, check_image_camera, load_camera, load_image, load_joints
+from monose3.inputs import CameraIntrinsics, check_image_camera, load_camera, load_image, load_joints, load_pose
 from monose3.render import Renderer, RenderJob
 from monose3.robot import get_spec
 from monose3.viz import draw_overlay, save_image
@@ -92,10 +92,15 @@ def estimate_pose(
     chains: int = 4,
     sampler: str = "revdiff",
     seed: int = 0,
+    prior: np.ndarray | None = None,
 ) -> PoseResult:
     """Camera-from-base for one RGB image. With ``chains`` > 1, that many stochastic reverse
     chains from perturbed initialisations run in one batch; their spread is the uncertainty.
+    ``prior``: an approximate camera-from-base (e.g. a previous calibration) to refine, from
+    ``InferenceConfig.prior_t``, instead of RoboPose's initialisation.
     Raises Monose3Error when the estimate puts the robot outside the image."""
+    if prior is not None:
+        check_prior(estimator, prior, joints, K, np.asarray(image).shape[:2])
     est = estimator.estimate(
         [image],
         np.asarray(K)[None],
@@ -104,6 +109,7 @@ def estimate_pose(
         hypotheses=chains,
         stochastic=chains > 1,
         seed=seed,
+        **prior_arguments(estimator, None if prior is None else np.asarray(prior)[None]),
     )
     if not est.in_view[0]:
         raise Monose3Error(
@@ -111,6 +117,24 @@ def estimate_pose(
             "and that the joints and intrinsics belong to this image"
         )
     return PoseResult(est.poses[0], float(est.spread_mm[0]), float(est.spread_deg[0]), chains, est)
+
+
+def check_prior(estimator: PoseEstimator, prior: np.ndarray, joints: np.ndarray, K: np.ndarray, hw: tuple) -> None:
+    """Refuse a prior that does not show the robot: usually the inverse pose or millimetres."""
+    points = estimator.robot.keypoints(np.asarray(joints)[None], np.asarray(prior)[None])[0]
+    centre = points.mean(0)
+    u, v = (np.asarray(K) @ centre)[:2] / centre[2] if centre[2] > 0 else (-1.0, -1.0)
+    if not (0 <= u < hw[1] and 0 <= v < hw[0]):
+        raise Monose3Error(
+            "the prior pose puts the robot outside the image; give camera_from_base (not its inverse), in metres"
+        )
+
+
+def prior_arguments(estimator: PoseEstimator, priors: np.ndarray | None) -> dict:
+    """``PoseEstimator.estimate`` arguments that refine approximate poses ``[B, 4, 4]`` (none: RoboPose's start)."""
+    if priors is None:
+        return {}
+    return {"init_poses": priors, "start_t": estimator.config.inference.prior_t}
 
 
 def overlay_image(
@@ -173,16 +197,23 @@ def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="monose3_out", help="folder for pose.json, pose.yaml and overlay.png")
     p.add_argument("--chains", type=int, default=4, help="stochastic reverse chains for the uncertainty (1 = off)")
     p.add_argument("--sampler", choices=["revdiff", "directreg"], default="revdiff")
+    p.add_argument(
+        "--prior",
+        help="approximate camera-from-base to refine (pose.json/calibration.json written by monose3, or a 4x4 list)",
+    )
 
 
 def run_estimate(args: argparse.Namespace) -> int:
     image = load_image(args.image)
     camera: CameraIntrinsics = load_camera(args.camera)
     check_image_camera(image, camera)
+    prior = load_pose(args.prior) if args.prior else None
     estimator = load_estimator(args.checkpoint, robot=args.robot)
     try:
         joints = load_joints(args.joints, estimator.robot)
-        result = estimate_pose(estimator, image, joints, camera.K, chains=max(1, args.chains), sampler=args.sampler)
+        result = estimate_pose(
+            estimator, image, joints, camera.K, chains=max(1, args.chains), sampler=args.sampler, prior=prior
+        )
     finally:
         estimator.close()
     out = Path(args.out)

@@ -57,6 +57,7 @@ class InferenceConfig:
     direct_steps: int = 5  # M direct-regression refinements
     eta: float = 1.0
     tracking_t: int = 10  # small t for 1-step tracking
+    prior_t: int = 30  # where the reverse process starts when refining a user's approximate pose
 
 
 @dataclass(frozen=True)

@@ -323,3 +323,43 @@ def check_image_camera(image: np.ndarray, camera: CameraIntrinsics) -> None:
         f"image is {w}x{h} but the camera intrinsics are for {camera.width}x{camera.height}; "
         f"give intrinsics calibrated at {w}x{h}{hint}"
     )
+
+
+# ---- poses ----------------------------------------------------------------------------------
+
+
+def pose_from_obj(obj: Any, source: str = "pose") -> np.ndarray:
+    """A camera-from-base 4x4 (metres) from ``{camera_from_base: 4x4}`` (the ``pose.json`` /
+    ``calibration.json`` that monose3 writes), ``{base_from_camera: 4x4}`` or a bare 4x4 list."""
+    value, inverse = obj, False
+    if isinstance(obj, Mapping):
+        if "camera_from_base" in obj:
+            value = obj["camera_from_base"]
+        elif "base_from_camera" in obj:
+            value, inverse = obj["base_from_camera"], True
+        else:
+            raise Monose3Error(
+                f"{source} has no camera_from_base or base_from_camera key; give the pose.json written by "
+                "monose3 estimate or calibrate, or a 4x4 list"
+            )
+    try:
+        pose = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        pose = np.empty(0)
+    if pose.shape != (4, 4):
+        raise Monose3Error(f"{source}: the pose must be a 4x4 matrix (4 rows of 4 numbers, metres)")
+    if not np.isfinite(pose).all():
+        raise Monose3Error(f"{source}: the pose contains NaN or infinity; give finite numbers")
+    rot = pose[:3, :3]
+    rigid = np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6) and np.allclose(rot @ rot.T, np.eye(3), atol=1e-3)
+    if not rigid or np.linalg.det(rot) < 0:
+        raise Monose3Error(
+            f"{source}: the pose is not a rigid transform (orthonormal rotation with det +1, last row 0 0 0 1)"
+        )
+    return np.linalg.inv(pose) if inverse else pose
+
+
+def load_pose(path: str | Path) -> np.ndarray:
+    """An approximate camera-from-base from a JSON or YAML file (see :func:`pose_from_obj`)."""
+    p = Path(path)
+    return pose_from_obj(_read_structured(p, "pose"), str(p))

@@ -127,3 +127,14 @@ def rigid_fit_np(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:
     pose[:3, 3] = mu_d - rot @ mu_s
     resid = dst - (src @ rot.T + pose[:3, 3])
     return pose, float(np.sqrt((resid**2).sum(1).mean()))
+
+
+def perturb_poses_np(poses: np.ndarray, rng: np.random.Generator, trans_m: float, rot_deg: float) -> np.ndarray:
+    """Poses ``[N, 4, 4]`` moved by Gaussian noise: the rotation turned by XYZ Euler angles of
+    std ``rot_deg`` per axis (in the camera frame, about the base origin), the translation
+    shifted by std ``trans_m`` per axis. Stands in for a rough prior or an inter-frame motion."""
+    out = np.array(poses, np.float64)
+    angles = torch.from_numpy(rng.normal(0, np.radians(rot_deg), (len(out), 3)))
+    out[:, :3, :3] = euler_xyz_to_matrix(angles).numpy() @ out[:, :3, :3]
+    out[:, :3, 3] += rng.normal(0, trans_m, (len(out), 3))
+    return out
