@@ -10,6 +10,7 @@ from monose3.diffusion import centroid_frame
 from monose3.dream import open_dataset
 from monose3.estimator import INIT_BOX_FRACTION, PoseEstimator
 from monose3.network import Denoiser
+from monose3.se3_average import rotation_angle
 
 
 @pytest.fixture(scope="module")
@@ -104,3 +105,18 @@ def test_estimate_out_of_the_image_is_flagged(estimator, frames):
     assert not est.in_view[0]
     ref = centroid_frame(torch.from_numpy(est.poses), torch.zeros(1, 3, dtype=torch.float64))
     assert ref.shape == (1, 4, 4)
+
+
+def test_chains_from_a_low_start_spread_less(estimator, frames):
+    """Chains refining a prior from a small t start as close together as that t's noise allows."""
+    images, Ks, joints = _inputs(frames, 1)
+    torch.nn.init.zeros_(estimator.model.net.fc.weight)
+    prior = np.stack([frames[0].pose])
+
+    def start_spread(start_t):
+        kw = {"hypotheses": 8, "stochastic": True, "init_poses": prior, "start_t": start_t}
+        est = estimator.estimate(images, Ks, joints, ddim_steps=1, direct_steps=0, **kw)
+        return np.degrees(rotation_angle(est.history[0][0, :, :3, :3], prior[0, :3, :3])).mean()
+
+    low, high = start_spread(10), start_spread(None)
+    assert 0 < low < 0.2 * high

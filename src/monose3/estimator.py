@@ -176,7 +176,7 @@ class PoseEstimator:
             init = np.repeat(np.asarray(init_poses, np.float64), hypotheses, 0)
             pose = centroid_frame(torch.from_numpy(init), batch.centroid)
         if stochastic:
-            pose = self._perturb(pose, gen)
+            pose = self._perturb(pose, gen, start_t)
         history = [pose]
         if sampler == "revdiff":
             steps = self.schedule.ddim_timesteps(ddim_steps, start_t)
@@ -210,12 +210,18 @@ class PoseEstimator:
 
     # ---- helpers --------------------------------------------------------------------------
 
-    def _perturb(self, pose: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    def _perturb(self, pose: torch.Tensor, gen: torch.Generator, start_t: int | None) -> torch.Tensor:
+        """Spread the chains' starts: 0.15 rad per axis and 5 % of the translation from t = T,
+        shrunk like the forward process's noise std sqrt(1 - alpha_bar_t) when the chains start
+        lower (refining a prior), so a good prior is not thrown further than the noise at t."""
+        ab = self.schedule.alpha_bar
+        t = self.schedule.num_steps if start_t is None else start_t
+        scale = float(torch.sqrt((1 - ab[t]) / (1 - ab[-1])))
         n = len(pose)
-        rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen, dtype=pose.dtype) * 0.15)
+        rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen, dtype=pose.dtype) * 0.15 * scale)
         out = pose.clone()
         out[:, :3, :3] = rot @ pose[:, :3, :3]
-        out[:, :3, 3] = pose[:, :3, 3] * (1 + 0.05 * torch.randn(n, 3, generator=gen, dtype=pose.dtype))
+        out[:, :3, 3] = pose[:, :3, 3] * (1 + 0.05 * scale * torch.randn(n, 3, generator=gen, dtype=pose.dtype))
         return out
 
     def _finish(self, batch: _Batch, history: list[torch.Tensor], n_images: int, hyps: int) -> Estimate:
