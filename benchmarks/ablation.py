@@ -24,7 +24,7 @@ from tqdm import tqdm
 from monose3.api import load_estimator
 from monose3.dream import open_dataset
 from monose3.metrics import add_per_frame, summarize
-from monose3.se3 import perturb_poses_np
+from monose3.se3_np import perturb_poses_np
 
 
 def run(estimator, frames, mode: str, batch: int, limit: int | None, motion: tuple[float, float]) -> dict:

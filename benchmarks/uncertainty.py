@@ -46,7 +46,7 @@ from monose3.api import UNRELIABLE_MM, load_estimator, prior_arguments
 from monose3.checkpoint import read_checkpoint
 from monose3.dream import open_dataset
 from monose3.metrics import add_per_frame, auc
-from monose3.se3 import perturb_poses_np
+from monose3.se3_np import perturb_poses_np
 
 ROOT = Path(__file__).resolve().parents[1]
 FAILURE_M = 0.05

@@ -177,3 +177,20 @@ def test_pool_matches_single_process(models, sample_view):
         np.testing.assert_array_equal(rgb_e, rgb_s)
     # the jobs differ, so an order mix-up would show
     assert not np.array_equal(expected[1][1], expected[3][1])
+
+
+def test_a_pool_worker_stays_without_torch(models):
+    """Workers import only the renderer and robot model (the pool resolves the backend in the
+    parent): torch would cost each worker about 500 MB and a second of start-up."""
+    pool = RendererPool(models["panda"].spec, workers=1)
+    try:
+        loaded = pool._pool.apply(_torch_loaded)
+    finally:
+        pool.close()
+    assert loaded is False
+
+
+def _torch_loaded() -> bool:
+    import sys
+
+    return "torch" in sys.modules

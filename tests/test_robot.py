@@ -9,7 +9,7 @@ import pytest
 
 from monose3.errors import Monose3Error
 from monose3.robot import NUM_SURFACE_POINTS, RobotModel, get_spec, load_obj, spec_from_files
-from monose3.se3 import rigid_fit_np
+from monose3.se3_np import rigid_fit_np
 
 ROBOTS = ("panda", "kuka")
 

@@ -1,4 +1,4 @@
-"""Rigid-transform helpers, checked against pybullet's rotation conventions and by round trips."""
+"""Rigid-transform helpers (se3 and se3_np), checked against pybullet's rotation conventions and by round trips."""
 
 from __future__ import annotations
 
@@ -8,18 +8,21 @@ import pytest
 import torch
 
 from monose3.se3 import (
-    axis_angle_to_matrix_np,
     euler_xyz_to_matrix,
     gram_schmidt_6d,
     make_pose,
+    rotation_angle,
+    rotation_to_6d,
+    transform_points,
+)
+from monose3.se3_np import (
+    axis_angle_to_matrix_np,
+    euler_xyz_to_matrix_np,
     matrix_to_quat_xyzw_np,
     perturb_poses_np,
     quat_xyzw_to_matrix_np,
     rigid_fit_np,
-    rotation_angle,
-    rotation_to_6d,
     rpy_to_matrix_np,
-    transform_points,
 )
 
 
@@ -92,6 +95,7 @@ def test_euler_xyz_matches_pybullet_rpy():
     ours = euler_xyz_to_matrix(torch.as_tensor(angles)).numpy()
     for a, rot in zip(angles, ours, strict=True):
         np.testing.assert_allclose(rot, _pb_matrix(pb.getQuaternionFromEuler(a.tolist())), atol=1e-6)
+    np.testing.assert_allclose(euler_xyz_to_matrix_np(angles), ours, atol=1e-12)
     np.testing.assert_allclose(rpy_to_matrix_np(angles[0]), ours[0], atol=1e-12)
     # extrinsic XYZ: x first, then y, then z, about the fixed axes
     a = np.array([0.3, -0.7, 1.1])

@@ -60,12 +60,12 @@ from monose3.errors import Monose3Error
 from monose3.inputs import CameraIntrinsics, load_camera, load_image, load_joints
 from monose3.render import RenderJob
 from monose3.robot import RobotModel
-from monose3.se3 import matrix_to_quat_xyzw_np
 from monose3.se3_average import (
     pose_residuals,
     robust_consensus,
     robust_pose_average,
 )
+from monose3.se3_np import matrix_to_quat_xyzw_np
 from monose3.viz import draw_overlay, image_grid, save_image
 
 log = logging.getLogger("monose3")

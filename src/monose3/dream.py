@@ -31,7 +31,7 @@ import numpy as np
 
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel, RobotSpec
-from monose3.se3 import matrix_to_quat_xyzw_np, quat_xyzw_to_matrix_np, rigid_fit_np
+from monose3.se3_np import matrix_to_quat_xyzw_np, quat_xyzw_to_matrix_np, rigid_fit_np
 
 log = logging.getLogger("monose3")
 

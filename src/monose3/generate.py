@@ -30,7 +30,7 @@ import numpy as np
 
 from monose3.dream import DreamDataset, write_camera_settings, write_frame
 from monose3.errors import Monose3Error
-from monose3.render import Lighting, Renderer, RenderJob
+from monose3.render import Lighting, Renderer, RenderJob, resolve_backend
 from monose3.robot import RobotModel, RobotSpec, get_spec, spec_from_files
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".webp")
@@ -679,7 +679,7 @@ def generate_dataset(
     write_camera_settings(out, np.array([[nominal_f, 0, (w - 1) / 2], [0, nominal_f, (h - 1) / 2], [0, 0, 1]]), w, h)
     (out / GENERATION_FILE).write_text(json.dumps(settings, indent=1))
     todo = [i for i in range(int(num)) if i not in done]
-    job = _Job(str(out), int(seed), (w, h), prof, spec, tuple(str(p) for p in bg_files), backend)
+    job = _Job(str(out), int(seed), (w, h), prof, spec, tuple(str(p) for p in bg_files), resolve_backend(backend))
     workers = (os.cpu_count() or 1) if workers is None else int(workers)
     workers = min(workers, len(todo))
     from tqdm import tqdm

@@ -70,13 +70,23 @@ def _egl_available() -> bool:
         return False
 
 
+def resolve_backend(backend: str) -> str:
+    """'auto' -> 'egl' with a GPU, else 'tiny' (pybullet's CPU TinyRenderer). Pools resolve it
+    in the parent so that worker processes need not import torch to find out."""
+    if backend not in ("auto", "egl", "tiny"):
+        raise Monose3Error(f"unknown render backend {backend!r}; use auto, egl or tiny")
+    if backend == "auto":
+        return "egl" if _egl_available() else "tiny"
+    return backend
+
+
 class Renderer:
     """A pybullet client holding one robot. Not thread-safe; one per process."""
 
     def __init__(self, robot: str | RobotSpec | RobotModel = "panda", backend: str = "auto"):
         self.model = robot if isinstance(robot, RobotModel) else RobotModel(robot)
         self.client = pb.connect(pb.DIRECT)
-        self.hardware = backend == "egl" or (backend == "auto" and _egl_available())
+        self.hardware = resolve_backend(backend) == "egl"
         if self.hardware:
             self._load_egl()
         try:
@@ -193,6 +203,7 @@ class RendererPool:
         spec = robot.spec if isinstance(robot, RobotModel) else robot
         self.model = RobotModel(spec)
         self.workers = os.cpu_count() or 1 if workers is None else workers
+        backend = resolve_backend(backend)
         if self.workers == 0:
             self._local: Renderer | None = Renderer(self.model, backend)
             self._pool = None

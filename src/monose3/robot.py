@@ -18,7 +18,7 @@ import numpy as np
 import pybullet_data
 
 from monose3.errors import Monose3Error
-from monose3.se3 import axis_angle_to_matrix_np, rpy_to_matrix_np
+from monose3.se3_np import axis_angle_to_matrix_np, rpy_to_matrix_np
 
 NUM_SURFACE_POINTS = 2000
 

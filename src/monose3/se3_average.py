@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monose3.errors import Monose3Error
-from monose3.se3 import matrix_to_quat_xyzw_np, quat_xyzw_to_matrix_np
+from monose3.se3_np import matrix_to_quat_xyzw_np, quat_xyzw_to_matrix_np
 
 # Weiszfeld stops when the update is below these (radians / meters) or after MAX_ITERS.
 ROT_TOL = 1e-10
