@@ -55,6 +55,7 @@ from monose3.generate import (
 from monose3.render import Renderer, RenderJob
 from monose3.robot import RobotModel
 from monose3.se3_average import pose_residuals
+from monose3.viz import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SIZE = (640, 480)
@@ -257,13 +258,10 @@ def report(runs: dict[int, list[dict]], info: dict, total: int, chains: int, che
 
 
 def plot(runs: dict[int, list[dict]], path: Path, total: int, chains: int, step) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     single = single_frame_errors(runs)
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.3))
+    fig = new_figure((14, 4.3))
+    axes = fig.subplots(1, 3)
     panels = [("add", "ADD of the pose (mm)"), ("mm", "translation error (mm)"), ("deg", "rotation error (deg)")]
     sizes = sorted(runs)
     for ax, (key, label) in zip(axes, panels, strict=True):
@@ -291,10 +289,7 @@ def plot(runs: dict[int, list[dict]], path: Path, total: int, chains: int, step)
         + (f", step {step})" if step is not None else ")")
     )
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 # ---- main -------------------------------------------------------------------------------------

@@ -47,6 +47,7 @@ from monose3.checkpoint import read_checkpoint
 from monose3.dream import open_dataset
 from monose3.metrics import add_per_frame, auc
 from monose3.se3_np import perturb_poses_np
+from monose3.viz import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 FAILURE_M = 0.05
@@ -322,13 +323,10 @@ def threshold_grid(data: dict) -> np.ndarray:
 def plot(
     sets: dict[str, dict], path: Path, chains: int, step: int | None, recommended: float | None, start: str
 ) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5))
+    fig = new_figure((12, 5))
+    ax1, ax2 = fig.subplots(1, 2)
     colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple"]
     finite = np.concatenate([d["add"][np.isfinite(d["add"])] for d in sets.values()])
     top = 1000 * 1.6 * max(float(finite.max()) if finite.size else FAILURE_M, 2 * FAILURE_M)
@@ -388,10 +386,7 @@ def plot(
     title = f"Chain spread as an uncertainty: {n} frames, {chains} chains" + (f", step {step}" if step else "")
     fig.suptitle(f"{title}\n{start}", fontsize=10)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 # ---- main -------------------------------------------------------------------------------------

@@ -43,6 +43,7 @@ from monose3.diffusion import FixPerNoiser, VisDiffNoiser, centroid_frame
 from monose3.generate import PROFILES, sample_scene
 from monose3.robot import RobotModel
 from monose3.se3 import euler_xyz_to_matrix, make_pose, rotation_angle, transform_points
+from monose3.viz import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SIZE = (640, 480)
@@ -276,10 +277,6 @@ def _ratio(a: dict, b: dict) -> str:
 
 
 def plot(out: dict, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     ts, res = out["timesteps"], out["results"]
     colors = {
@@ -289,7 +286,8 @@ def plot(out: dict, path: Path) -> Path:
         "FixPer matched": "tab:green",
         "FixPer@camera": "tab:gray",
     }
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig = new_figure((12, 4.5))
+    ax1, ax2 = fig.subplots(1, 2)
     markers = {"VisDiff g=3": "o", "VisDiff g=1": "o", "FixPer": "s", "FixPer matched": "^", "FixPer@camera": "o"}
     for name, per_t in res.items():
         c = colors[name]
@@ -321,10 +319,7 @@ def plot(out: dict, path: Path) -> Path:
     ax2.grid(alpha=0.3)
     fig.suptitle(f"VisDiff vs FixPer ({out['samples']} noisy poses per point, 640x480, camera 0.8-2.5 m)")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:

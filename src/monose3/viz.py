@@ -214,16 +214,17 @@ def denoising_strip(
 # ---- plots ----------------------------------------------------------------------------------
 
 
-def _new_figure(size: tuple[float, float] = (6.4, 4.4)) -> Figure:
+def new_figure(size: tuple[float, float] = (6.4, 4.4)) -> Figure:
+    """A figure outside pyplot (no global state, no backend to choose, nothing to close)."""
     fig = Figure(figsize=size, dpi=100)
     FigureCanvasAgg(fig)
     return fig
 
 
-def _save_figure(fig: Figure, path: str | Path) -> Path:
+def save_figure(fig: Figure, path: str | Path, dpi: float | str = "figure") -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, bbox_inches="tight")
+    fig.savefig(p, bbox_inches="tight", dpi=dpi)
     return p
 
 
@@ -235,7 +236,7 @@ def plot_add_distribution(adds_by_name: Mapping[str, np.ndarray], path: str | Pa
     """
     if not adds_by_name:
         raise Monose3Error("plot_add_distribution needs at least one method's ADD values")
-    fig = _new_figure()
+    fig = new_figure()
     ax = fig.add_subplot(1, 1, 1)
     thresholds_mm = np.linspace(0.0, 100.0, 1001)
     for name, adds in adds_by_name.items():
@@ -251,7 +252,7 @@ def plot_add_distribution(adds_by_name: Mapping[str, np.ndarray], path: str | Pa
     ax.set_title("ADD accuracy")
     ax.grid(True, alpha=0.4)
     ax.legend(loc="lower right")
-    return _save_figure(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_curves(
@@ -267,7 +268,7 @@ def plot_curves(
     if not ys:
         raise Monose3Error("plot_curves needs at least one curve")
     xs = np.asarray(x, dtype=np.float64).reshape(-1)
-    fig = _new_figure()
+    fig = new_figure()
     ax = fig.add_subplot(1, 1, 1)
     for name, y in ys.items():
         ya = np.asarray(y, dtype=np.float64).reshape(-1)
@@ -281,4 +282,4 @@ def plot_curves(
     ax.set_title(title)
     ax.grid(True, alpha=0.4)
     ax.legend(loc="best")
-    return _save_figure(fig, path)
+    return save_figure(fig, path)
