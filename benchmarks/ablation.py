@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from tqdm import tqdm
 
 from monose3.api import load_estimator
 from monose3.dream import open_dataset
+from monose3.errors import run_reporting_errors
 from monose3.metrics import add_per_frame, summarize
 from monose3.se3_np import perturb_poses_np
 
@@ -113,4 +115,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_reporting_errors(main, "ablation.py"))

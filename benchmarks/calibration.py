@@ -43,7 +43,7 @@ from monose3.api import load_estimator
 from monose3.calibrate import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
 from monose3.checkpoint import read_checkpoint
 from monose3.dream import open_dataset, write_camera_settings, write_frame
-from monose3.errors import Monose3Error
+from monose3.errors import Monose3Error, run_reporting_errors
 from monose3.generate import (
     PROFILES,
     BackgroundSource,
@@ -332,4 +332,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_reporting_errors(main, "calibration.py"))

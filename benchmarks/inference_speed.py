@@ -40,6 +40,7 @@ import torch
 from monose3.config import get_preset
 from monose3.diffusion import base_frame, centroid_frame
 from monose3.dream import open_dataset
+from monose3.errors import run_reporting_errors
 from monose3.estimator import PoseEstimator
 from monose3.generate import generate_dataset
 from monose3.network import Denoiser, apply_update, raw_to_update
@@ -246,4 +247,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_reporting_errors(main, "inference_speed.py"))

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 import numpy as np
 
+from monose3.errors import run_reporting_errors
 from monose3.render import RendererPool, RenderJob
 from monose3.robot import RobotModel
 
@@ -107,4 +109,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(run_reporting_errors(main, "render.py"))

@@ -38,6 +38,7 @@ from torch.utils.data import default_collate
 
 from monose3.config import Config, get_preset
 from monose3.dream import open_dataset
+from monose3.errors import run_reporting_errors
 from monose3.generate import generate_dataset
 from monose3.network import Denoiser, disentangled_loss
 from monose3.render import Renderer, RenderJob
@@ -221,4 +222,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_reporting_errors(main, "train_speed.py"))

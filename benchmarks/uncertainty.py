@@ -45,6 +45,7 @@ import torch
 from monose3.api import UNRELIABLE_MM, load_estimator, prior_arguments
 from monose3.checkpoint import read_checkpoint
 from monose3.dream import open_dataset
+from monose3.errors import run_reporting_errors
 from monose3.metrics import add_per_frame, auc
 from monose3.se3_np import perturb_poses_np
 from monose3.viz import new_figure, save_figure
@@ -443,4 +444,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_reporting_errors(main, "uncertainty.py"))

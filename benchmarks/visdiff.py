@@ -40,6 +40,7 @@ import torch
 
 from monose3.config import DiffusionConfig
 from monose3.diffusion import FixPerNoiser, VisDiffNoiser, centroid_frame
+from monose3.errors import run_reporting_errors
 from monose3.generate import PROFILES, sample_scene
 from monose3.robot import RobotModel
 from monose3.se3 import euler_xyz_to_matrix, make_pose, rotation_angle, transform_points
@@ -340,4 +341,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_reporting_errors(main, "visdiff.py"))

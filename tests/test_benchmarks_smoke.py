@@ -101,3 +101,16 @@ def test_uncertainty_from_priors(tmp_path: Path, tiny_dream: Path, capsys, keep_
     data = json.loads((tmp_path / "u.json").read_text())["sets"][tiny_dream.name]
     assert len(data["add"]) == 6 and max(data["prior_add"]) < 1e-4
     assert (tmp_path / "u.png").stat().st_size > 10_000
+
+
+def test_a_benchmark_reports_bad_input_in_one_line(tmp_path: Path) -> None:
+    import subprocess
+
+    from conftest import save_tiny_checkpoint
+
+    ck = save_tiny_checkpoint(tmp_path / "tiny.pt")
+    cmd = [sys.executable, str(BENCHMARKS / "uncertainty.py"), "--checkpoint", str(ck), "--data", str(tmp_path)]
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    lines = [line for line in out.stderr.splitlines() if not line.startswith("pybullet build time")]
+    assert out.returncode == 2 and len(lines) == 1, out.stderr
+    assert lines[0].startswith("uncertainty.py: error:") and "neither DREAM frames" in lines[0]

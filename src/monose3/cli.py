@@ -7,7 +7,7 @@ import argparse
 import importlib
 import sys
 
-from monose3.errors import Monose3Error
+from monose3.errors import run_reporting_errors
 
 COMMANDS = {
     "demo": ("monose3.demo", "estimate the pose on the bundled sample scene and show the error"),
@@ -37,14 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     command = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(command).parse_args(argv)
-    try:
-        return int(args._run(args) or 0)
-    except Monose3Error as err:
-        print(f"monose3 {args.command}: error: {err}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"monose3 {args.command}: interrupted", file=sys.stderr)
-        return 130
+    return run_reporting_errors(lambda: args._run(args), f"monose3 {args.command}")
 
 
 if __name__ == "__main__":
