@@ -52,8 +52,8 @@ from monose3.generate import (
     frame_rng,
     sample_scene,
 )
-from monose3.render import Renderer, RenderJob
 from monose3.robot import RobotModel
+from monose3.robot.renderer import RenderJob, RobotRenderer
 from monose3.se3_average import pose_residuals
 from monose3.viz import new_figure, save_figure
 
@@ -123,16 +123,14 @@ def make_static_set(out: Path, frames: int, seed: int) -> dict:
     background = BackgroundSource().sample(rng, IMAGE_SIZE)
     _draw_shapes(rng, background, int(rng.integers(profile.distractors[0], profile.distractors[1] + 1)), None, 0.5)
     backgrounds = FixedBackground(background)
-    renderer = Renderer(model)
-    try:
-        for i, q in enumerate(joints):
-            frng = frame_rng(seed, i + 1)
-            rgb, mask = renderer.render(RenderJob(q, scene.pose, scene.K, IMAGE_SIZE, scene.lighting))
-            img, info = compose_frame(frng, rgb, mask, per_frame, backgrounds)
-            quality = int(frng.integers(profile.jpeg_quality[0], profile.jpeg_quality[1] + 1))
-            write_frame(out, i, img, scene.K, model.joint_dict(q), scene.pose, robot=model, quality=quality)
-    finally:
-        renderer.close()
+    renders = RobotRenderer(model).render_jobs(
+        [RenderJob(q, scene.pose, scene.K, IMAGE_SIZE, scene.lighting) for q in joints]
+    )
+    for i, (q, (rgb, mask)) in enumerate(zip(joints, renders, strict=True)):
+        frng = frame_rng(seed, i + 1)
+        img, info = compose_frame(frng, rgb, mask, per_frame, backgrounds)
+        quality = int(frng.integers(profile.jpeg_quality[0], profile.jpeg_quality[1] + 1))
+        write_frame(out, i, img, scene.K, model.joint_dict(q), scene.pose, robot=model, quality=quality)
     write_camera_settings(out, scene.K, *IMAGE_SIZE)
     centroid = model.centroid(model.surface_points(joints)).mean(0)
     distance = float(np.linalg.norm(scene.pose[:3, :3] @ centroid + scene.pose[:3, 3]))
@@ -317,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         info = make_static_set(folder, args.frames, args.seed)
         made = time.perf_counter() - tick
         print(f"static set: {args.frames} frames in {folder} ({made:.0f} s)", file=sys.stderr)
-        estimator = load_estimator(args.checkpoint, workers=0, device=args.device)
+        estimator = load_estimator(args.checkpoint, device=args.device)
         try:
             ds = open_dataset(folder, estimator.robot)
             frames = [ds[i] for i in range(len(ds))]

@@ -8,8 +8,9 @@ typical view of the robot), one hypothesis. Modes:
 * 5 steps: 5 DDIM steps (target 1.30 FPS);
 * tracking: 1 step at t = ``tracking_t`` from the previous pose (target 6.5 FPS).
 
-For each preset ('paper', 'cpu') and renderer pool (``workers=0``: in-process, and 2 worker
-processes) every mode is warmed up, then timed ``--repeats`` times; the median wall time gives
+For each preset ('paper', 'cpu') and batch of B copies of the image (B = 1: one camera; larger
+B: batched tracking or evaluation, reported as images/s) every mode is warmed up,
+then timed ``--repeats`` times; the median wall time gives
 the FPS and ``PoseEstimator.timings`` the stages (render, crop, network, update; 'other' is the
 rest of the wall time: image standardisation, surface points, initialisation and the final
 medoid, each timed too). Every figure is the median over the timed calls of its per-call value.
@@ -18,7 +19,7 @@ ratio FPS / target, not asserted. Where the time beyond render + network exceeds
 total, its pieces outside render + network are timed alone (to tell a real cost from a call
 preempted on a busy machine) and one call is profiled.
 
-    python benchmarks/inference_speed.py [--repeats 5] [--presets paper cpu] [--workers 0 2]
+    python benchmarks/inference_speed.py [--repeats 5] [--presets paper cpu] [--batches 1 64]
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from monose3.errors import run_reporting_errors
 from monose3.estimator import PoseEstimator
 from monose3.generate import generate_dataset
 from monose3.network import Denoiser, apply_update, raw_to_update
-from monose3.views import crop_batch, crop_geometry, render_jobs
+from monose3.views import crop_batch, crop_geometry
 
 TARGETS_FPS = {"10 steps": 0.65, "5 steps": 1.30, "tracking": 6.5}
 OVERHEAD_LIMIT = 0.15
@@ -70,12 +71,13 @@ def load_average() -> str:
         return "unknown"
 
 
-def mode_calls(est: PoseEstimator, frame: dict) -> dict[str, Callable[[], object]]:
-    images, Ks, joints = [frame["image"]], frame["K"][None], frame["joints"][None]
+def mode_calls(est: PoseEstimator, frame: dict, batch: int = 1) -> dict[str, Callable[[], object]]:
+    images = [frame["image"]] * batch
+    Ks, joints = np.repeat(frame["K"][None], batch, 0), np.repeat(frame["joints"][None], batch, 0)
     return {
         "10 steps": lambda: est.estimate(images, Ks, joints),
         "5 steps": lambda: est.estimate(images, Ks, joints, ddim_steps=5, direct_steps=0),
-        "tracking": lambda: est.track(images, Ks, joints, previous=frame["pose"][None]),
+        "tracking": lambda: est.track(images, Ks, joints, previous=np.repeat(frame["pose"][None], batch, 0)),
     }
 
 
@@ -146,7 +148,7 @@ def overhead_breakdown(est: PoseEstimator, frame: dict, repeats: int = 30) -> di
         "_finish (per call)": lambda: est._finish(batch, [pose, pose], 1, 1),
         "crop_geometry (per step)": lambda: crop_geometry(pose, batch.points_ref, batch.K, net.render_size),
         "crop_batch (per step)": lambda: crop_batch(batch.images, boxes, net.render_size),
-        "render jobs (per step)": lambda: render_jobs(
+        "render (per step)": lambda: est.renderer.render(
             batch.joints, base_frame(pose, batch.centroid), K_crop, net.render_size
         ),
         "update (per step)": lambda: apply_update(pose, *raw_to_update(raw, net.render_size[0]), K_crop),
@@ -162,7 +164,7 @@ def overhead_breakdown(est: PoseEstimator, frame: dict, repeats: int = 30) -> di
     return out
 
 
-def run(presets: list[str], workers: list[int], repeats: int, profile_over: float = OVERHEAD_LIMIT) -> dict:
+def run(presets: list[str], batches: list[int], repeats: int, profile_over: float = OVERHEAD_LIMIT) -> dict:
     device = "cuda" if torch.cuda.is_available() else "cpu"
     frame = load_frame()
     rows, profiles = [], []
@@ -170,20 +172,17 @@ def run(presets: list[str], workers: list[int], repeats: int, profile_over: floa
         config = get_preset(name)
         torch.manual_seed(0)
         model = Denoiser(config.network)
-        for w in workers:
-            est = PoseEstimator(model, config, workers=w, device=device)
-            try:
-                helpers = timed_helpers(est)
-                calls = mode_calls(est, frame)
-                for mode, call in calls.items():
-                    r = time_mode(est, call, repeats, helpers)
-                    rows.append({"preset": name, "workers": w, "mode": mode, "device": device, **r})
-                    if r["overhead"] > profile_over:
-                        parts = overhead_breakdown(est, frame)
-                        text = "\n".join(f"  {k:<26} {v:7.2f} ms" for k, v in parts.items())
-                        profiles.append((f"{name}, workers={w}, {mode}", text + "\n" + profile(call)))
-            finally:
-                est.close()
+        est = PoseEstimator(model, config, device=device)
+        helpers = timed_helpers(est)
+        for w in batches:
+            for mode, call in mode_calls(est, frame, w).items():
+                r = time_mode(est, call, repeats, helpers)
+                rows.append({"preset": name, "workers": w, "mode": mode, "device": device, **r, "ips": w * r["fps"]})
+                if r["overhead"] > profile_over:
+                    parts = overhead_breakdown(est, frame)
+                    text = "\n".join(f"  {k:<26} {v:7.2f} ms" for k, v in parts.items())
+                    profiles.append((f"{name}, B={w}, {mode}", text + "\n" + profile(call)))
+        est.close()
     return {"rows": rows, "profiles": profiles, "device": device}
 
 
@@ -191,7 +190,7 @@ def report(out: dict) -> str:
     lines = [
         f"Inference speed on {out['device']} (torch threads {torch.get_num_threads()}), one 640x480 image, "
         f"1 hypothesis; median wall time; stages in ms; load average {load_average()}",
-        f"{'preset':<6} {'W':>1} {'mode':<9} {'FPS':>6} {'wall':>7} {'render':>7} {'crop':>6} {'network':>8} "
+        f"{'preset':<6} {'B':>1} {'mode':<9} {'FPS':>6} {'wall':>7} {'render':>7} {'crop':>6} {'network':>8} "
         f"{'update':>7} {'other':>6} {'beyond':>7} {'target':>7} {'ratio':>6}",
     ]
     for r in out["rows"]:
@@ -202,11 +201,12 @@ def report(out: dict) -> str:
             f"{1000 * r['render']:>7.0f} {1000 * r['crop']:>6.1f} {1000 * r['network']:>8.0f} "
             f"{1000 * r['update']:>7.1f} {1000 * r['other']:>6.1f} {100 * r['overhead']:>6.1f}% {target:>7.2f} "
             f"{ratio:>5.2f}{' PASS' if ratio >= 1 else ' MISS'}"
+            + (f"  {r['ips']:.1f} images/s" if r["workers"] > 1 else "")
         )
     lines.append("'other' split (ms): _prepare (standardise image, surface points) / initial_poses / _finish")
     for r in out["rows"]:
         lines.append(
-            f"  {r['preset']:<6} W={r['workers']} {r['mode']:<9} {1000 * r['_prepare']:6.1f} / "
+            f"  {r['preset']:<6} B={r['workers']} {r['mode']:<9} {1000 * r['_prepare']:6.1f} / "
             f"{1000 * r['initial_poses']:5.1f} / {1000 * r['_finish']:5.1f}   "
             f"unaccounted {1000 * r['unaccounted']:5.1f}"
         )
@@ -216,7 +216,7 @@ def report(out: dict) -> str:
     )
     over = [r for r in out["rows"] if r["overhead"] > OVERHEAD_LIMIT]
     if over:
-        lines.append("over the 15% limit: " + ", ".join(f"{r['preset']}/W={r['workers']}/{r['mode']}" for r in over))
+        lines.append("over the 15% limit: " + ", ".join(f"{r['preset']}/B={r['workers']}/{r['mode']}" for r in over))
     else:
         lines.append("all configurations within the 15% limit")
     for title, text in out["profiles"]:
@@ -232,7 +232,7 @@ def report(out: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--presets", nargs="+", default=["paper", "cpu"])
-    p.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="renderer pool sizes to compare")
+    p.add_argument("--batches", type=int, nargs="+", default=[1], help="images per call (e.g. 1 64)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, help="torch threads (default: torch's own choice)")
     p.add_argument("--no-profile", action="store_true", help="skip profiling configurations over the limit")
@@ -240,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     tick = time.perf_counter()
-    out = run(args.presets, args.workers, args.repeats, profile_over=2.0 if args.no_profile else OVERHEAD_LIMIT)
+    out = run(args.presets, args.batches, args.repeats, profile_over=2.0 if args.no_profile else OVERHEAD_LIMIT)
     print(report(out))
     print(f"({time.perf_counter() - tick:.1f} s)")
     return 0

@@ -1,11 +1,12 @@
-"""Render throughput of the panda at 320x240 and 640x480, in one process and over a pool.
+"""Render throughput of monose3's batched PyTorch renderer, against pybullet's TinyRenderer.
 
-Usage: ``python benchmarks/render.py [--seconds S] [--workers N] [--robot panda]``
+Usage: ``python benchmarks/render.py [--seconds S] [--batch 16] [--robot panda] [--picture PNG]``
 
-Prints renders/s in one process (workers=0, one core) and with RendererPool over all cores,
-the pool's speed-up and the per-core rate, each against its target as a PASS/MISS ratio.
-Targets: >= 35 renders/s per core at 320x240; pool speed-up >= 0.9x per core (1.8x on 2).
-The numbers depend on the machine and on what else runs on it; nothing is asserted.
+On the CPU: renders/s at 128x96 and 320x240 in batches of ``--batch`` (all torch threads),
+and pybullet TinyRenderer's renders/s over a pool of one process per core on the same jobs,
+in the same run; the ratio is the figure (goal >= 1.0x). On a GPU: renders/s in batches of
+256 (goals 20,000/s at 128x96 and 5,000/s at 320x240). Nothing is asserted: the numbers depend
+on the machine and on what else runs on it.
 """
 
 from __future__ import annotations
@@ -16,97 +17,122 @@ import sys
 import time
 
 import numpy as np
+import torch
 
 from monose3.errors import run_reporting_errors
-from monose3.render import RendererPool, RenderJob
+from monose3.generate import PROFILES, sample_scene
 from monose3.robot import RobotModel
+from monose3.robot.renderer import RenderJob, RobotRenderer
 
-PER_CORE_TARGET = 35.0  # renders/s on one core at 320x240
-SPEEDUP_PER_CORE = 0.9  # 1.8x on 2 cores
-SIZES = ((320, 240), (640, 480))
-
-
-def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, np.cross(z, x), z])
-    pose[:3, 3] = -pose[:3, :3] @ eye
-    return pose
+SIZES = ((128, 96), (320, 240))
+GPU_BATCH = 256
+GPU_TARGETS = {(128, 96): 20_000.0, (320, 240): 5_000.0}
 
 
 def make_jobs(model: RobotModel, size: tuple[int, int], n: int, seed: int = 0) -> list[RenderJob]:
-    """Typical RoboPose renders: random configurations, camera 1-2 m away, robot filling the view."""
+    """Training-like renders: cameras of the ``train`` profile, robot mostly in view."""
     rng = np.random.default_rng(seed)
-    w, h = size
-    q = model.random_joints(rng, n)
-    centres = model.centroid(model.surface_points(q))
-    jobs = []
-    for b in range(n):
-        d = rng.normal(size=3)
-        eye = centres[b] + rng.uniform(1.0, 2.0) * d / np.linalg.norm(d)
-        pose = _look_at(eye, centres[b], np.array([0.0, 0.0, 1.0]) + rng.normal(scale=0.1, size=3))
-        f = rng.uniform(0.9, 1.2) * w
-        K = np.array([[f, 0.0, w / 2 - 0.5], [0.0, f, h / 2 - 0.5], [0.0, 0.0, 1.0]])
-        jobs.append(RenderJob(q[b], pose, K, size))
-    return jobs
+    return [
+        RenderJob(s.joints, s.pose, s.K, size)
+        for s in (sample_scene(rng, model, PROFILES["train"], size) for _ in range(n))
+    ]
 
 
-def measure(pool: RendererPool, jobs: list[RenderJob], seconds: float, batch: int) -> float:
-    """Renders per second over at least ``seconds`` of whole batches (after one warm-up batch)."""
-    pool.render(jobs[:batch])
-    done, i, start = 0, 0, time.perf_counter()
+def torch_rate(renderer: RobotRenderer, jobs: list[RenderJob], batch: int, seconds: float, device: str) -> float:
+    """Renders per second over whole batches (after a warm-up batch)."""
+    stacks = [
+        tuple(
+            torch.as_tensor(np.stack([getattr(j, f) for j in jobs[i : i + batch]]), device=device)
+            for f in ("pose", "K")
+        )
+        + (np.stack([j.joints for j in jobs[i : i + batch]]),)
+        for i in range(0, len(jobs) - batch + 1, batch)
+    ]
+    size = jobs[0].size
+
+    def one(k: int) -> None:
+        pose, K, q = stacks[k % len(stacks)]
+        renderer.render(q, pose, K, size)
+
+    one(0)
+    if device == "cuda":
+        torch.cuda.synchronize()
+    done, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
-        chunk = [jobs[(i + k) % len(jobs)] for k in range(batch)]
-        pool.render(chunk)
-        done += batch
-        i += batch
-    return done / (time.perf_counter() - start)
+        one(done)
+        done += 1
+    if device == "cuda":
+        torch.cuda.synchronize()
+    return done * batch / (time.perf_counter() - start)
 
 
-def verdict(value: float, target: float) -> str:
-    return f"{'PASS' if value >= target else 'MISS'} ({value / target:.2f}x of target {target:g})"
+def pybullet_rate(model: RobotModel, jobs: list[RenderJob], seconds: float, workers: int) -> float | None:
+    try:
+        from monose3.render import RendererPool
+    except ImportError:
+        return None
+    with RendererPool(model.spec, workers=workers, backend="tiny") as pool:
+        pool.render(jobs[: 2 * workers])
+        done, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            pool.render(jobs)
+            done += len(jobs)
+        return done / (time.perf_counter() - start)
+
+
+def save_comparison(model: RobotModel, renderer: RobotRenderer, path: str, size=(320, 240), n: int = 4) -> None:
+    """Rows of (monose3, pybullet TinyRenderer, silhouette difference) for ``n`` training-like views."""
+    from monose3.render import Renderer
+    from monose3.viz import save_image
+
+    jobs = make_jobs(model, size, n, seed=5)
+    ours = renderer.render_jobs(jobs)
+    ref_renderer = Renderer(model, "tiny")
+    rows = []
+    for job, (rgb, mask) in zip(jobs, ours, strict=True):
+        ref_rgb, ref_mask = ref_renderer.render(job)
+        diff = np.zeros_like(rgb)
+        diff[mask & ref_mask] = 90
+        diff[mask & ~ref_mask] = (255, 60, 60)  # drawn only by monose3
+        diff[~mask & ref_mask] = (60, 160, 255)  # drawn only by pybullet
+        rows.append(np.concatenate([rgb, ref_rgb, diff], 1))
+    ref_renderer.close()
+    save_image(path, np.concatenate(rows, 0))
+    print(f"wrote {path}: monose3 | pybullet TinyRenderer | red: only monose3, blue: only pybullet")
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--seconds", type=float, default=3.0, help="time per measurement (default 3)")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="pool size (default: all cores)")
-    parser.add_argument("--robot", default="panda")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=4.0, help="time per measurement")
+    parser.add_argument("--batch", type=int, default=16, help="CPU batch size")
+    parser.add_argument("--robot", default="panda", help="panda or kuka")
+    parser.add_argument("--picture", help="also save monose3 vs pybullet renders side by side here (PNG)")
     args = parser.parse_args()
-
     model = RobotModel(args.robot)
-    cores = max(1, args.workers)
-    jobs = {size: make_jobs(model, size, 64, seed=i) for i, size in enumerate(SIZES)}
-    single, pooled = {}, {}
-    with RendererPool(model, workers=0) as local:
-        backend = "EGL (hardware)" if local._local.hardware else "TinyRenderer (CPU)"
-        for size in SIZES:
-            single[size] = measure(local, jobs[size], args.seconds, batch=8)
-    with RendererPool(model, workers=cores) as pool:
-        for size in SIZES:
-            pooled[size] = measure(pool, jobs[size], args.seconds, batch=8 * cores)
-
-    print(f"robot {model.name}, backend {backend}, pool of {cores} workers, {os.cpu_count()} cores visible")
-    print(f"{'size':>9} | {'1 process':>12} | {'pool':>12} | {'speed-up':>8} | {'pool/core':>10}")
-    for size in SIZES:
-        w, h = size
-        speedup = pooled[size] / single[size]
-        print(
-            f"{w:>4}x{h:<4} | {single[size]:>8.1f} r/s | {pooled[size]:>8.1f} r/s | {speedup:>7.2f}x | "
-            f"{pooled[size] / cores:>6.1f} r/s"
-        )
-    small = SIZES[0]
-    speedup = pooled[small] / single[small]
-    print(f"per-core rate at 320x240 (1 process): {single[small]:.1f} r/s  {verdict(single[small], PER_CORE_TARGET)}")
+    renderer = RobotRenderer(model)
+    if args.picture:
+        save_comparison(model, renderer, args.picture)
+    cores = os.cpu_count() or 1
     print(
-        f"pool per-core rate at 320x240: {pooled[small] / cores:.1f} r/s  "
-        f"{verdict(pooled[small] / cores, PER_CORE_TARGET)}"
+        f"robot {model.name}, {len(model.mesh.faces)} triangles, {cores} cores, torch threads {torch.get_num_threads()}"
     )
-    print(f"pool speed-up at 320x240 on {cores} cores: {speedup:.2f}x  {verdict(speedup, SPEEDUP_PER_CORE * cores)}")
+    print(f"{'size':>8} {'device':>6} {'batch':>5} {'torch/s':>9} {'pybullet/s':>11} {'ratio':>6}")
+    for size in SIZES:
+        jobs = make_jobs(model, size, 4 * args.batch)
+        ours = torch_rate(renderer, jobs, args.batch, args.seconds, "cpu")
+        ref = pybullet_rate(model, jobs, args.seconds, cores)
+        ratio = f"{ours / ref:5.2f}x" if ref else "  n/a"
+        ref_text = f"{ref:11.1f}" if ref else f"{'(no pybullet)':>11}"
+        print(f"{size[0]:>4}x{size[1]:<3} {'cpu':>6} {args.batch:>5} {ours:9.1f} {ref_text} {ratio}  (goal >= 1.0x)")
+    if torch.cuda.is_available():
+        for size in SIZES:
+            jobs = make_jobs(model, size, 4 * GPU_BATCH)
+            rate = torch_rate(renderer, jobs, GPU_BATCH, args.seconds, "cuda")
+            goal = GPU_TARGETS[size]
+            head = f"{size[0]:>4}x{size[1]:<3} {'cuda':>6} {GPU_BATCH:>5}"
+            print(f"{head} {rate:9.0f} {'':>11} {rate / goal:5.2f}x of {goal:.0f}/s")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(run_reporting_errors(main, "render.py"))
+    sys.exit(run_reporting_errors(main, "benchmarks/render.py"))

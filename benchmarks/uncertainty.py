@@ -414,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     tick = time.perf_counter()
     step = read_checkpoint(args.checkpoint).get("step")
-    estimator = load_estimator(args.checkpoint, workers=0, device=args.device)
+    estimator = load_estimator(args.checkpoint, device=args.device)
     try:
         sets = {
             Path(d).name: measure(estimator, d, args.limit, args.chains, args.batch_size, args.seed, args.prior)

@@ -1,5 +1,6 @@
-"""Shared fixtures: one RobotModel and one Renderer per robot for the whole session (pybullet
-start-up and URDF parsing are the slow parts), and a sampler of random views of the robot."""
+"""Shared fixtures: one RobotModel and one renderer per robot for the whole session (URDF and
+mesh loading are the slow parts), pybullet's renderers where pybullet is installed, and a
+sampler of random views of the robot."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ from monose3.checkpoint import save_checkpoint
 from monose3.config import NetworkConfig, get_preset
 from monose3.generate import look_at as look_at_rotation
 from monose3.network import Denoiser
-from monose3.render import Renderer
 from monose3.robot import RobotModel
+from monose3.robot.renderer import RobotRenderer
 
 ROBOTS = ("panda", "kuka")
 
@@ -62,8 +63,17 @@ def models() -> dict[str, RobotModel]:
 
 
 @pytest.fixture(scope="session")
-def renderers(models: dict[str, RobotModel]) -> Iterator[dict[str, Renderer]]:
-    rend = {name: Renderer(model) for name, model in models.items()}
+def renderers(models: dict[str, RobotModel]) -> dict[str, RobotRenderer]:
+    return {name: RobotRenderer(model) for name, model in models.items()}
+
+
+@pytest.fixture(scope="session")
+def pybullet_renderers(models: dict[str, RobotModel]) -> Iterator[dict]:
+    """pybullet's TinyRenderer per robot: the independent reference (skipped without pybullet)."""
+    pytest.importorskip("pybullet")
+    from monose3.render import Renderer
+
+    rend = {name: Renderer(model, "tiny") for name, model in models.items()}
     yield rend
     for r in rend.values():
         r.close()

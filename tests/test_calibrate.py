@@ -28,7 +28,7 @@ from monose3.dream import write_frame
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
 from monose3.network import Denoiser
-from monose3.render import RenderJob
+from monose3.robot.renderer import RenderJob
 from monose3.se3_average import (
     geometric_median,
     make_pose_np,
@@ -142,7 +142,7 @@ def scene(models, renderers):
     rng = np.random.default_rng(7)
     model = models["panda"]
     joints = model.random_joints(rng, N_FRAMES)
-    images = [renderers["panda"].render(RenderJob(q, POSE, K, SIZE))[0] for q in joints]
+    images = [renderers["panda"].render_jobs([RenderJob(q, POSE, K, SIZE)])[0][0] for q in joints]
     return joints, images
 
 
@@ -172,7 +172,7 @@ def tiny():
     config = with_section(get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=SIZE)
     config = with_section(config, "inference", ddim_steps=1, direct_steps=1)
     torch_model = Denoiser(config.network)
-    estimator = PoseEstimator(torch_model, config, workers=0)
+    estimator = PoseEstimator(torch_model, config)
     yield estimator
     estimator.close()
 

@@ -19,7 +19,7 @@ from monose3.camera import (
     standardize_image,
 )
 from monose3.errors import Monose3Error
-from monose3.render import RenderJob
+from monose3.robot.renderer import RenderJob
 
 CROP = (320, 240)
 
@@ -188,13 +188,13 @@ def test_crop_of_full_render_matches_render_with_crop_intrinsics(models, rendere
     checked = 0
     for _ in range(4):
         view = sample_view(model, rng, size=(640, 480), dist=(1.2, 2.5))
-        _, full = renderer.render(RenderJob(view.joints, view.pose, view.K, view.size))
+        _, full = renderer.render_jobs([RenderJob(view.joints, view.pose, view.K, view.size)])[0]
         uv = view.uv()
         centre = view.uv(model.centroid(view.points)[None])
         box = crop_boxes(torch.as_tensor(uv[None]), torch.as_tensor(centre), 640 / 480)
         Kc = crop_intrinsics(torch.as_tensor(view.K[None]), box, CROP)[0].numpy()
         crop = crop_images(torch.as_tensor(full[None, None], dtype=torch.float32), box, CROP)[0, 0].numpy()
-        _, direct = renderer.render(RenderJob(view.joints, view.pose, Kc, CROP))
+        _, direct = renderer.render_jobs([RenderJob(view.joints, view.pose, Kc, CROP)])[0]
         cropped = crop > 0.5
         if not direct.any():
             continue

@@ -17,7 +17,7 @@ from monose3.se3_average import rotation_angle
 def estimator():
     torch.manual_seed(0)
     config = get_preset("cpu", network=TINY_NET)
-    est = PoseEstimator(Denoiser(config.network), config, workers=0)
+    est = PoseEstimator(Denoiser(config.network), config)
     yield est
     est.close()
 

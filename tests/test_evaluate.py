@@ -22,7 +22,7 @@ def tiny_checkpoint(tmp_path_factory):
 
 def test_add_of_each_frame_matches_the_returned_poses(tiny_dream):
     config = get_preset("cpu", network=TINY_NET)
-    est = PoseEstimator(Denoiser(config.network), config, workers=0)
+    est = PoseEstimator(Denoiser(config.network), config)
     frames = open_dataset(tiny_dream, "panda")
     result = evaluate_dataset(est, frames, "tiny", ddim_steps=1, direct_steps=1, batch_size=4, progress=False)
     est.close()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from monose3.errors import Monose3Error
-from monose3.robot import NUM_SURFACE_POINTS, RobotModel, get_spec, load_obj, spec_from_files
+from monose3.robot import NUM_SURFACE_POINTS, RobotModel, get_spec, spec_from_files
 from monose3.se3_np import rigid_fit_np
 
 ROBOTS = ("panda", "kuka")
@@ -21,15 +21,11 @@ def _rotation_angle(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _posed_triangles(model: RobotModel, q: np.ndarray) -> np.ndarray:
-    """``[F, 3, 3]`` triangles of every OBJ visual mesh, posed by the model's FK (base frame)."""
-    poses = model.link_poses(q[None])[0]
-    tris = []
-    for vis in model._visuals:
-        verts, faces = load_obj(vis.mesh)
-        verts = verts * vis.scale @ vis.origin[:3, :3].T + vis.origin[:3, 3]
-        link = poses[model.link_index[vis.link]]
-        tris.append((verts @ link[:3, :3].T + link[:3, 3])[faces])
-    return np.concatenate(tris)
+    """``[F, 3, 3]`` triangles of the robot's mesh, posed by the model's FK (base frame)."""
+    mesh = model.mesh
+    poses = model.link_poses(q[None])[0][mesh.vertex_link]
+    verts = np.einsum("vij,vj->vi", poses[:, :3, :3], mesh.vertices) + poses[:, :3, 3]
+    return verts[mesh.faces]
 
 
 def _on_some_triangle(points: np.ndarray, tris: np.ndarray, tol: float = 1e-7) -> np.ndarray:
@@ -58,8 +54,8 @@ def _on_some_triangle(points: np.ndarray, tris: np.ndarray, tol: float = 1e-7) -
 
 
 @pytest.mark.parametrize("robot", ROBOTS)
-def test_fk_matches_pybullet_link_states(robot, models, renderers):
-    model, renderer = models[robot], renderers[robot]
+def test_fk_matches_pybullet_link_states(robot, models, pybullet_renderers):
+    model, renderer = models[robot], pybullet_renderers[robot]
     rng = np.random.default_rng(0)
     q = model.random_joints(rng, 150)
     # also the joint limits themselves
@@ -178,8 +174,8 @@ def test_unknown_robot_name():
 
 
 @pytest.mark.parametrize("robot", ROBOTS)
-def test_keypoints_are_link_origins(robot, models, renderers):
-    model, renderer = models[robot], renderers[robot]
+def test_keypoints_are_link_origins(robot, models, pybullet_renderers):
+    model, renderer = models[robot], pybullet_renderers[robot]
     q = model.random_joints(np.random.default_rng(4), 5)
     kp = model.keypoints(q)
     assert kp.shape == (5, len(model.keypoint_names), 3)

@@ -19,7 +19,7 @@ from monose3.dream import write_frame
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
 from monose3.network import Denoiser
-from monose3.render import RenderJob
+from monose3.robot.renderer import RenderJob
 from monose3.track import (
     MODE_FULL,
     MODE_TRACK,
@@ -46,7 +46,7 @@ def sequence(models, renderers):
     model = models["panda"]
     start = model.random_joints(np.random.default_rng(3), 1)[0]
     joints = np.stack([start + 0.05 * i for i in range(N)])
-    images = [renderers["panda"].render(RenderJob(q, POSE, K, SIZE))[0] for q in joints]
+    images = [renderers["panda"].render_jobs([RenderJob(q, POSE, K, SIZE)])[0][0] for q in joints]
     return joints, images
 
 
@@ -54,7 +54,7 @@ def sequence(models, renderers):
 def tiny():
     config = with_section(get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=SIZE)
     config = with_section(config, "inference", ddim_steps=1, direct_steps=1)
-    estimator = PoseEstimator(Denoiser(config.network), config, workers=0)
+    estimator = PoseEstimator(Denoiser(config.network), config)
     yield estimator
     estimator.close()
 

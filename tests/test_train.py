@@ -1,22 +1,27 @@
-"""Training: the network learns (overfits a fixed batch), checkpoints resume exactly, the CLI
-wires it, and DistributedDataParallel runs on CPU with gloo."""
+"""Training: the network learns (overfits a fixed batch), samples are pure functions of the step,
+synthetic scenes and DREAM frames both feed it, checkpoints resume exactly, weight shards carry
+a run across machines, the CLI refuses bad input before any work, and DDP runs on CPU (gloo)."""
 
+import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 import torch
 from conftest import TINY_NET
-from torch.utils.data import default_collate
 
 from monose3.checkpoint import read_checkpoint
 from monose3.cli import main
 from monose3.config import get_preset, with_section
 from monose3.dream import open_dataset
+from monose3.errors import Monose3Error
 from monose3.network import Denoiser
-from monose3.train import learning_rate, train, train_step
-from monose3.training_data import DenoisingSamples, GlobalSampleSampler
+from monose3.training.loop import BatchMaker, Sources, learning_rate, train, train_step
+from monose3.training.samples import GlobalSampleSampler
+from monose3.training.shards import SHARD_BYTES, read_shards, split_state, write_shards
 
 
 def tiny_config(**train):
@@ -30,13 +35,27 @@ def frames(tiny_dream):
     return open_dataset(tiny_dream, "panda")
 
 
-def test_samples_are_a_pure_function_of_the_sample_number(frames):
-    ds = DenoisingSamples(frames, tiny_config())
-    a, b = ds[7], DenoisingSamples(frames, tiny_config())[7]
-    assert all(torch.equal(a[k], b[k]) for k in a)
-    assert not torch.equal(ds[8]["pose_ref_t"], a["pose_ref_t"])
-    assert a["render"].shape == (3, 48, 64) and a["crop"].shape == (3, 48, 64)
-    assert a["render"].amax() > 0  # the robot is in the render
+@pytest.mark.parametrize("synthetic", [False, True])
+def test_batches_are_a_pure_function_of_the_step(frames, synthetic):
+    sources = Sources([] if synthetic else frames, synthetic)
+    make = lambda: BatchMaker(tiny_config(), sources, torch.device("cpu"), 0, 0, 1)  # noqa: E731
+    a, b = make(), make()
+    first_a, first_b = a.batch(0)[1], b.batch(0)[1]
+    assert all(torch.equal(first_a[k], first_b[k]) for k in first_a)
+    assert not torch.equal(a.batch(1)[1]["pose_ref_t"], first_a["pose_ref_t"])
+    assert first_a["render"].shape == (4, 3, 48, 64) and first_a["crop"].shape == (4, 3, 48, 64)
+    assert first_a["render"].amax() > 0 and first_a["crop"].std() > 0.02
+
+
+def test_synthetic_crops_show_the_robot_where_the_ground_truth_puts_it():
+    """The synthetic image is rendered at H_0 through the crop's intrinsics: at small t the robot
+    in the crop and in the render at H_t nearly coincide."""
+    maker = BatchMaker(tiny_config(batch_size=8), Sources(synthetic=True), torch.device("cpu"), 0, 0, 1)
+    _, batch = maker.batch(0)
+    small = batch["t"] <= 30
+    render_mask = batch["render"].amax(1) > 0
+    # where the render shows the robot, the crop differs from its local background less at small t
+    assert render_mask[small].float().mean() > 0.02
 
 
 def test_sampler_splits_global_batches_over_ranks():
@@ -45,33 +64,66 @@ def test_sampler_splits_global_batches_over_ranks():
     it = iter(one)
     first = [next(it) for _ in range(8)]
     per_rank = [[next(i) for _ in range(4)] for i in map(iter, ranks)]
-    # rank 0 takes the first half of each global batch, rank 1 the second.
     assert per_rank[0] == first[0:2] + first[4:6] and per_rank[1] == first[2:4] + first[6:8]
 
 
 def test_overfits_a_fixed_batch(frames):
     torch.manual_seed(0)
     config = tiny_config()
-    ds = DenoisingSamples(frames, config)
-    batch = default_collate([ds[i] for i in range(4)])
+    _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
     model = Denoiser(config.network)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = [train_step(model, opt, batch, config, 1e-3)[0] for _ in range(60)]
-    assert losses[-1] < losses[0] / 5, losses[::10]
+    losses = [train_step(model, opt, batch, config, 1e-3)[0] for _ in range(40)]
+    assert losses[-1] < losses[0] / 4, losses[::10]
 
 
 def test_resume_reproduces_the_uninterrupted_run(frames, tmp_path):
-    torch.manual_seed(0)
-    full = train(tiny_config(), [], tmp_path / "full", progress=False, frames=frames)
+    sources = Sources(frames, synthetic=True, synthetic_ratio=0.5)
+    full = train(tiny_config(), tmp_path / "full", sources, progress=False)
     # An interrupted run: stops at step 3 (its last checkpoint), then resumes to step 6.
-    train(tiny_config(max_steps=3), [], tmp_path / "cut", progress=False, frames=frames)
-    resumed = train(tiny_config(), [], tmp_path / "cut", resume=True, progress=False, frames=frames)
-    assert len(full) == 6 and len(resumed) == 3
-    assert resumed == pytest.approx(full[3:], rel=1e-4, abs=1e-6)
+    train(tiny_config(max_steps=3), tmp_path / "cut", sources, progress=False)
+    resumed = train(tiny_config(), tmp_path / "cut", sources, resume=True, progress=False)
+    assert len(full.losses) == 6 and len(resumed.losses) == 3
+    assert resumed.losses == full.losses[3:]  # bit for bit
     state = read_checkpoint(tmp_path / "cut" / "checkpoint.pt")
-    assert state["step"] == 6 and state["config"]["robot"] == "panda"
+    assert state["step"] == 6 and state["samples"] == 24 and state["config"]["robot"] == "panda"
     rows = (tmp_path / "cut" / "log.csv").read_text().strip().splitlines()
     assert [int(r.split(",")[0]) for r in rows[1:]] == [1, 2, 3, 4, 5, 6]
+    assert {r.split(",")[-1] for r in rows[1:]} == {"frames", "synthetic"}
+
+
+def test_shards_round_trip_and_continue_a_run(frames, tmp_path):
+    first = train(tiny_config(max_steps=2), tmp_path / "a", Sources(frames), progress=False)
+    weights, meta = read_shards(tmp_path / "a")
+    assert meta["step"] == 2 and meta["samples"] == 8 and meta["config"]["preset"] == "cpu"
+    assert set(meta["loss"]) == {"loss", "loss_xy", "loss_rot", "loss_z"}
+    model = Denoiser(tiny_config().network)
+    model.load_state_dict(weights)  # every tensor is there
+    # continuing from shards alone: a fresh optimiser, the step and sample count carry on
+    second = train(tiny_config(max_steps=4), tmp_path / "b", Sources(frames), init=tmp_path / "a", progress=False)
+    assert second.step == 4 and second.samples == 16 and len(second.losses) == 2 and len(first.losses) == 2
+    assert read_shards(tmp_path / "b")[1]["samples"] == 16
+
+
+def test_shards_stay_under_the_size_limit():
+    state = Denoiser(get_preset("paper").network).state_dict()
+    groups = split_state(state)
+    sizes = [sum(v.numel() * v.element_size() for v in g.values()) for g in groups]
+    assert len(groups) >= 2 and max(sizes) <= SHARD_BYTES
+    assert sum(len(g) for g in groups) == len(state)
+
+
+def test_a_damaged_shard_set_is_refused(tmp_path):
+    model = Denoiser(TINY_NET)
+    write_shards(tmp_path, model.state_dict(), {"config": tiny_config().to_dict(), "step": 1})
+    shard = sorted(tmp_path.glob("weights-*.pt"))[0]
+    data = shard.read_bytes()
+    shard.write_bytes(data[:-10])
+    with pytest.raises(Monose3Error, match="corrupt"):
+        read_shards(tmp_path)
+    shard.unlink()
+    with pytest.raises(Monose3Error, match="missing"):
+        read_shards(tmp_path)
 
 
 def test_warmup_reaches_the_paper_rate():
@@ -79,54 +131,88 @@ def test_warmup_reaches_the_paper_rate():
     assert learning_rate(0, config) < learning_rate(100, config) < learning_rate(10_000, config) == 3e-4
 
 
+def _train_args(tiny_dream, out, *extra):
+    return ["train", "--data", str(tiny_dream), "--out", str(out), "--batch-size", "2", "--workers", "0", *extra]
+
+
 def test_cli_refuses_to_overwrite_and_resumes(tiny_dream, tmp_path, capsys):
-    args = [
-        "train",
-        "--data",
-        str(tiny_dream),
-        "--out",
-        str(tmp_path),
-        "--steps",
-        "2",
-        "--batch-size",
-        "2",
-        "--workers",
-        "0",
-        "--checkpoint-every",
-        "1",
-    ]
+    args = _train_args(tiny_dream, tmp_path, "--steps", "2", "--checkpoint-every", "1")
     assert main(args) == 0
     assert main(args) == 2
     assert "--resume" in capsys.readouterr().err
-    assert main([*args[:6], "3", *args[7:], "--resume"]) == 0
+    assert main([*_train_args(tiny_dream, tmp_path, "--steps", "3", "--checkpoint-every", "1"), "--resume"]) == 0
     assert read_checkpoint(tmp_path / "checkpoint.pt")["step"] == 3
+
+
+def test_cli_trains_on_synthetic_scenes_for_a_time_budget(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "--synthetic", "--out", str(out), "--batch-size", "2", "--minutes", "0.15"]) == 0
+    text = capsys.readouterr().out
+    assert "stopped by minutes" in text
+    meta = json.loads((out / "weights.json").read_text())
+    assert meta["step"] >= 1 and (out / "loss.png").is_file()
+    # and continues from its shards
+    assert main(["train", "--synthetic", "--out", str(tmp_path / "next"), "--batch-size", "2", "--init", str(out),
+                 "--steps", str(meta["step"] + 1)]) == 0  # fmt: skip
+    assert json.loads((tmp_path / "next" / "weights.json").read_text())["step"] == meta["step"] + 1
+
+
+@pytest.fixture(scope="module")
+def kuka_shards(tmp_path_factory):
+    out = tmp_path_factory.mktemp("kuka")
+    config = get_preset("cpu", robot="kuka")
+    write_shards(out, Denoiser(config.network).state_dict(), {"config": config.to_dict(), "step": 1})
+    return out
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--minutes", "0"], "--minutes must be > 0"),
+        (["--minutes", "-3"], "--minutes must be > 0"),
+        (["--init", "nowhere"], "not found"),
+        (["--init", "KUKA"], "kuka/cpu model"),
+        (["--backgrounds", "EMPTY"], "no images"),
+        (["--out", "FILE"], "is a file"),
+    ],
+)
+def test_cli_bad_input_is_one_line_before_any_work(tmp_path, capsys, kuka_shards, extra, words):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "file").write_text("x")
+    names = {"KUKA": str(kuka_shards), "EMPTY": str(tmp_path / "empty"), "FILE": str(tmp_path / "file")}
+    extra = [names.get(e, e) for e in extra]
+    out = tmp_path / "run"
+    args = ["train", "--synthetic", "--out", str(out), "--steps", "1", *extra]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_a_killed_run_keeps_its_last_shards(tmp_path):
+    """kill -9 mid-run: the shard set on disk is whole and at most one shard interval old."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "monose3", "train", "--synthetic", "--out", str(out), "--batch-size", "2",
+           "--steps", "100000", "--shard-minutes", "0.002"]  # fmt: skip
+    proc = subprocess.Popen(cmd, env={**os.environ, "OMP_NUM_THREADS": "1"}, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and len(list(out.glob("weights-*.pt"))) < 4:
+            time.sleep(0.2)
+        time.sleep(1.0)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    weights, meta = read_shards(out)
+    assert meta["step"] >= 2 and weights
 
 
 @pytest.mark.slow
 def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "torch.distributed.run",
-        "--nproc_per_node",
-        "2",
-        "--master_port",
-        "29517",
-        "-m",
-        "monose3.cli",
-        "train",
-        "--data",
-        str(tiny_dream),
-        "--out",
-        str(tmp_path),
-        "--steps",
-        "2",
-        "--batch-size",
-        "2",
-        "--workers",
-        "0",
-    ]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
+           "-m", "monose3.cli", *_train_args(tiny_dream, tmp_path, "--steps", "2")]  # fmt: skip
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert read_checkpoint(tmp_path / "checkpoint.pt")["step"] == 2

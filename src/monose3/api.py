@@ -15,8 +15,8 @@ from monose3.checkpoint import load_model
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
 from monose3.inputs import CameraIntrinsics, check_image_camera, load_camera, load_image, load_joints, load_pose
-from monose3.render import Renderer, RenderJob
 from monose3.robot import get_spec
+from monose3.robot.renderer import RenderJob, RobotRenderer
 from monose3.viz import draw_overlay, save_image
 
 ASSETS = Path(__file__).parent / "assets"
@@ -35,7 +35,7 @@ def default_checkpoint() -> Path:
 
 
 def load_estimator(
-    checkpoint: str | Path | None = None, robot: str | None = None, workers: int | None = 0, device: str = "auto"
+    checkpoint: str | Path | None = None, robot: str | None = None, device: str = "auto"
 ) -> PoseEstimator:
     """The estimator for a checkpoint (default: the Panda model shipped in the package)."""
     import torch
@@ -45,7 +45,7 @@ def load_estimator(
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     model, config = load_model(checkpoint or default_checkpoint(), robot=robot, device=device)
-    return PoseEstimator(model, config, workers=workers, device=device)
+    return PoseEstimator(model, config, device=device)
 
 
 @dataclass
@@ -143,19 +143,15 @@ def overlay_image(
     joints: np.ndarray,
     pose: np.ndarray,
     robot,
-    renderer: Renderer | None = None,
+    renderer: RobotRenderer | None = None,
     text: str | None = None,
     gt_keypoints: np.ndarray | None = None,
 ) -> np.ndarray:
     """The robot rendered at ``pose`` drawn on the image as an outline with its keypoints."""
     h, w = image.shape[:2]
-    own = renderer is None
-    renderer = renderer or Renderer(robot)
-    try:
-        _, mask = renderer.render(RenderJob(np.asarray(joints, np.float64), pose, np.asarray(K, np.float64), (w, h)))
-    finally:
-        if own:
-            renderer.close()
+    renderer = renderer or RobotRenderer(robot)
+    job = RenderJob(np.asarray(joints, np.float64), pose, np.asarray(K, np.float64), (w, h))
+    _, mask = renderer.render_jobs([job])[0]
     kp = renderer.model.keypoints(np.asarray(joints)[None], pose[None])[0]
     uv = kp[:, :2] / kp[:, 2:] * np.diag(K)[:2] + K[:2, 2]
     gt_uv = None

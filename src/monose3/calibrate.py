@@ -58,8 +58,8 @@ import yaml
 from monose3.api import UNRELIABLE_MM
 from monose3.errors import Monose3Error
 from monose3.inputs import CameraIntrinsics, load_camera, load_image, load_joints
-from monose3.render import RenderJob
 from monose3.robot import RobotModel
+from monose3.robot.renderer import RenderJob
 from monose3.se3_average import (
     pose_residuals,
     robust_consensus,
@@ -229,7 +229,7 @@ def draw_pose_overlays(
     max_width: int | None = None,
 ) -> list[np.ndarray]:
     """The robot rendered at each pose drawn on its image (outline, fill, keypoints; ground-truth
-    keypoints as crosses when given), rendered in one batch on the estimator's renderer pool.
+    keypoints as crosses when given), rendered in one batch on the estimator's renderer.
     ``max_width``: tiles wider than this are shrunk (overlays are drawn at full size first)."""
     jobs = [
         RenderJob(
@@ -237,7 +237,7 @@ def draw_pose_overlays(
         )
         for im, K, q, p in zip(images, Ks, joints, poses, strict=True)
     ]
-    masks = [m for _, m in estimator.pool.render(jobs)] if jobs else []
+    masks = [m for _, m in estimator.renderer.render_jobs(jobs)] if jobs else []
     kps = estimator.robot.keypoints(np.stack([np.asarray(q, np.float64) for q in joints])) if jobs else []
     out = []
     for i, (im, K, pose, mask) in enumerate(zip(images, Ks, poses, masks, strict=True)):
@@ -605,7 +605,6 @@ def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--batch-size", type=int, default=4, help="frames estimated together")
     p.add_argument("--limit", type=int, help="use only the first N frames")
-    p.add_argument("--workers", type=int, default=0, help="renderer processes (0: render in this process)")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto")
     p.add_argument(
         "--consensus-k",
@@ -623,7 +622,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         raise Monose3Error(f"--limit must be at least 1, got {args.limit}")
     if not Path(args.frames).is_dir():
         raise Monose3Error(f"frames folder not found: {args.frames}; give the folder that holds the frames")
-    estimator = load_estimator(args.checkpoint, robot=args.robot, workers=args.workers, device=args.device)
+    estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
     try:
         frames = load_frames(args.frames, estimator.robot)
         if args.limit is not None:

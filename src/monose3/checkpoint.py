@@ -46,14 +46,27 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return state
 
 
+def read_weights(path: str | Path) -> dict[str, Any]:
+    """``{"model": state dict, "config": dict, "step": int, ...}`` from a .pt checkpoint or a shard set."""
+    from monose3.training.shards import is_shard_set, read_shards
+
+    if is_shard_set(path):
+        weights, meta = read_shards(path)
+        return {"model": weights, **meta}
+    if Path(path).is_dir():
+        raise Monose3Error(f"{path} is a folder without weights.json; pass a .pt checkpoint or a shard folder")
+    return read_checkpoint(path)
+
+
 def load_model(
     path: str | Path, robot: str | None = None, preset: str | None = None, device: str = "cpu"
 ) -> tuple[Denoiser, Config]:
-    """The network and its configuration from a checkpoint, in eval mode.
+    """The network and its configuration from a checkpoint or a shard set (a folder holding
+    ``weights.json``, as ``monose3 train`` writes), in eval mode.
 
     ``robot``/``preset``, when given, must match what the checkpoint was trained for.
     """
-    state = read_checkpoint(path)
+    state = read_weights(path)
     config = Config.from_dict(state["config"])
     if robot is not None and config.robot != robot:
         raise Monose3Error(

@@ -15,11 +15,11 @@ from monose3.camera import project, standardize_image
 from monose3.config import Config
 from monose3.diffusion import NoiseSchedule, base_frame, centroid_frame, ddim_step, denormalize_pose, normalize_pose
 from monose3.network import Denoiser, apply_update, raw_to_update
-from monose3.render import RendererPool
 from monose3.robot import RobotModel
+from monose3.robot.renderer import RobotRenderer
 from monose3.se3 import euler_xyz_to_matrix, make_pose
 from monose3.se3_average import rotation_angle
-from monose3.views import crop_batch, crop_geometry, image_to_tensor, render_jobs
+from monose3.views import crop_batch, crop_geometry, image_to_tensor
 
 # RoboPose's fixed initial orientation (camera-from-reference-point): the robot seen from the front.
 INIT_ROTATION = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)
@@ -51,19 +51,20 @@ class _Batch:
 
 
 class PoseEstimator:
-    """A trained denoiser plus a renderer pool; call :meth:`estimate` or :meth:`track`."""
+    """A trained denoiser plus the batched renderer on the model's device; call :meth:`estimate` or :meth:`track`."""
 
-    def __init__(self, model: Denoiser, config: Config, workers: int | None = 0, device: str = "cpu"):
+    def __init__(self, model: Denoiser, config: Config, device: str = "cpu"):
         self.model = model.to(device).eval()
         self.config = config
         self.device = torch.device(device)
         self.robot = RobotModel(config.robot)
         self.schedule = NoiseSchedule(config.diffusion)
-        self.pool = RendererPool(self.robot.spec, workers=workers)
+        self.renderer = RobotRenderer(self.robot, self.device)
         self.timings: dict[str, float] = defaultdict(float)
 
     def close(self) -> None:
-        self.pool.close()
+        """Free the renderer's cached mesh tensors (GPU memory when on CUDA)."""
+        self.renderer.release()
 
     # ---- inputs ---------------------------------------------------------------------------
 
@@ -111,8 +112,8 @@ class PoseEstimator:
         boxes, K_crop = crop_geometry(pose_ref, batch.points_ref, batch.K, net.render_size)
         self.timings["crop"] += time.perf_counter() - tick
         tick = time.perf_counter()
-        jobs = render_jobs(batch.joints, base_frame(pose_ref, batch.centroid), K_crop, net.render_size)
-        renders = torch.stack([image_to_tensor(rgb) for rgb, _ in self.pool.render(jobs)])
+        pose_base = base_frame(pose_ref, batch.centroid).to(self.device)
+        renders = self.renderer.render(batch.joints, pose_base, K_crop.to(self.device), net.render_size).rgb
         self.timings["render"] += time.perf_counter() - tick
         tick = time.perf_counter()
         crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from monose3.estimator import PoseEstimator
 from monose3.metrics import add_per_frame, format_table, summarize
-from monose3.render import RenderJob
+from monose3.robot.renderer import RenderJob
 from monose3.viz import denoising_strip, plot_add_distribution
 
 
@@ -109,7 +109,7 @@ def frame_label(frame) -> str:
 def _denoising_overlay(estimator: PoseEstimator, image, K, joints, poses, path: Path) -> None:
     """Overlays of the render on the image at each denoising step (paper's Fig. 3b)."""
     h, w = image.shape[:2]
-    masks = [mask for _, mask in estimator.pool.render([RenderJob(joints, p, K, (w, h)) for p in poses])]
+    masks = [mask for _, mask in estimator.renderer.render_jobs([RenderJob(joints, p, K, (w, h)) for p in poses])]
     labels = ["init"] + [f"step {i}" for i in range(1, len(poses))]
     denoising_strip(image, masks, labels, path)
 
@@ -127,7 +127,6 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, nargs=2, metavar=("K", "M"), help="DDIM steps and direct steps (default 5 5)")
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--limit", type=int, help="evaluate only the first N frames of each dataset")
-    p.add_argument("--workers", type=int, default=0, help="renderer processes (0: render in this process)")
     p.add_argument("--json", help="write per-frame ADD and poses here")
     p.add_argument("--plot", help="write the ADD distribution plot (PNG) here")
     p.add_argument("--overlays", help="folder for denoising-step overlays of --overlay-frames")
@@ -138,7 +137,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
     from monose3.dream import open_dataset
 
-    estimator = load_estimator(args.checkpoint, workers=args.workers)
+    estimator = load_estimator(args.checkpoint)
     k, m = args.steps if args.steps else (None, None)
     results = []
     try:

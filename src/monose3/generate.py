@@ -2,9 +2,9 @@
 
 Each frame: joints uniform within the limits, a camera around the robot (distance,
 azimuth, elevation, roll, intrinsics and where the robot lands in the image all random),
-the robot rendered with pybullet under random lighting, composited over a random
-background with distractor shapes behind and occluders in front, then colour jitter,
-blur, noise and a random JPEG quality. The annotation is exact by construction: the
+the robot rendered (monose3's renderer, or pybullet's for cross-renderer sets) under random
+lighting, composited over a random background with distractor shapes behind and occluders
+in front, then colour jitter, blur, noise and a random JPEG quality. The annotation is exact by construction: the
 keypoints written are the forward kinematics of the written joints under the written pose.
 
 Frame ``i`` draws all its randomness from ``np.random.SeedSequence([seed, i])``, so a
@@ -30,8 +30,8 @@ import numpy as np
 
 from monose3.dream import DreamDataset, write_camera_settings, write_frame
 from monose3.errors import Monose3Error
-from monose3.render import Lighting, Renderer, RenderJob, resolve_backend
 from monose3.robot import RobotModel, RobotSpec, get_spec, spec_from_files
+from monose3.robot.renderer import Lighting, RenderJob, RobotRenderer
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".webp")
 GENERATION_FILE = "_generation.json"
@@ -174,13 +174,15 @@ def sample_intrinsics(rng: np.random.Generator, profile: SceneProfile, size: tup
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def sample_lighting(rng: np.random.Generator) -> Lighting:
-    """Random light direction, a mild colour tint (sometimes a strong one) and shading weights."""
+def sample_lighting(rng: np.random.Generator, camera_from_base: np.ndarray) -> Lighting:
+    """Random light direction (mostly from above in the base frame, given in the camera frame),
+    a mild colour tint (sometimes a strong one) and shading weights."""
     direction = rng.normal(size=3)
     direction[2] = abs(direction[2]) + 0.2 if rng.random() < 0.85 else direction[2]
     tint = rng.uniform(0.75, 1.0, 3) if rng.random() < 0.8 else rng.uniform(0.4, 1.0, 3)
+    direction = camera_from_base[:3, :3] @ (direction / np.linalg.norm(direction))
     return Lighting(
-        direction=tuple(float(v) for v in direction / np.linalg.norm(direction)),
+        direction=tuple(float(v) for v in direction),
         color=tuple(float(v) for v in tint / tint.max()),
         ambient=float(rng.uniform(0.3, 0.8)),
         diffuse=float(rng.uniform(0.2, 0.8)),
@@ -234,7 +236,7 @@ def sample_scene(rng: np.random.Generator, model: RobotModel, profile: SceneProf
     if best is None:  # pragma: no cover - every camera had the robot within 10 cm of the lens
         raise Monose3Error(f"profile {profile.name}: no valid camera found; increase the distance range")
     pose, K, cam, frac = best
-    return Scene(joints, pose, K, sample_lighting(rng), cam, frac)
+    return Scene(joints, pose, K, sample_lighting(rng, pose), cam, frac)
 
 
 # ---- pixels -------------------------------------------------------------------------------
@@ -495,13 +497,38 @@ class _Job:
     backend: str
 
 
+RENDERERS = ("torch", "tiny", "egl")
+
+
+def make_renderer(model: RobotModel, backend: str):
+    """monose3's own renderer ('torch'), or pybullet's TinyRenderer/EGL as an independent one."""
+    if backend == "torch":
+        return _TorchJobs(RobotRenderer(model))
+    from monose3.render import Renderer
+
+    return Renderer(model, backend)
+
+
+class _TorchJobs:
+    """The batched renderer behind the one-job ``render`` / ``close`` interface of pybullet's."""
+
+    def __init__(self, renderer: RobotRenderer):
+        self.renderer = renderer
+
+    def render(self, job: RenderJob) -> tuple[np.ndarray, np.ndarray]:
+        return self.renderer.render_jobs([job])[0]
+
+    def close(self) -> None:
+        self.renderer.release()
+
+
 class FrameMaker:
-    """Renders and writes frames of one job (one per process: it owns a pybullet client)."""
+    """Renders and writes frames of one job (one per process: a pybullet client is not shareable)."""
 
     def __init__(self, job: _Job):
         self.job = job
         self.model = RobotModel(job.spec)
-        self.renderer = Renderer(self.model, job.backend)
+        self.renderer = make_renderer(self.model, job.backend)
         self.backgrounds = BackgroundSource([Path(p) for p in job.backgrounds])
 
     def make(self, index: int) -> tuple[np.ndarray, Scene, dict]:
@@ -596,7 +623,7 @@ def _run_workers(job: _Job, todo: list[int], workers: int, bar) -> None:
         results.close()
 
 
-def _list_backgrounds(folder: str | Path | None) -> list[Path]:
+def list_backgrounds(folder: str | Path | None) -> list[Path]:
     if folder is None:
         return []
     folder = Path(folder)
@@ -630,7 +657,7 @@ def generate_dataset(
     size: tuple[int, int] = (640, 480),
     *,
     resume: bool = False,
-    backend: str = "auto",
+    backend: str = "torch",
     progress: bool = True,
 ) -> Path:
     """Generate ``num`` frames into ``out`` (DREAM layout, per-frame intrinsics); returns ``out``.
@@ -651,7 +678,7 @@ def generate_dataset(
         raise Monose3Error(f"--workers must be >= 0, got {workers}")
     if out.exists() and not out.is_dir():
         raise Monose3Error(f"--out {out} is a file; give a folder path")
-    bg_files = _list_backgrounds(backgrounds)
+    bg_files = list_backgrounds(backgrounds)
     settings = {
         "num": int(num),
         "seed": int(seed),
@@ -659,6 +686,7 @@ def generate_dataset(
         "profile": asdict(prof),
         "size": [w, h],
         "backgrounds": [str(p) for p in bg_files],
+        "renderer": backend,
     }
     done = _existing_frames(out)
     if done and not resume:
@@ -679,7 +707,13 @@ def generate_dataset(
     write_camera_settings(out, np.array([[nominal_f, 0, (w - 1) / 2], [0, nominal_f, (h - 1) / 2], [0, 0, 1]]), w, h)
     (out / GENERATION_FILE).write_text(json.dumps(settings, indent=1))
     todo = [i for i in range(int(num)) if i not in done]
-    job = _Job(str(out), int(seed), (w, h), prof, spec, tuple(str(p) for p in bg_files), resolve_backend(backend))
+    if backend not in RENDERERS:
+        raise Monose3Error(f"unknown renderer {backend!r}; choose one of {', '.join(RENDERERS)}")
+    if backend != "torch":
+        from monose3.render import resolve_backend
+
+        resolve_backend(backend)  # a missing pybullet fails here, before any work
+    job = _Job(str(out), int(seed), (w, h), prof, spec, tuple(str(p) for p in bg_files), backend)
     workers = (os.cpu_count() or 1) if workers is None else int(workers)
     workers = min(workers, len(todo))
     from tqdm import tqdm
@@ -773,6 +807,12 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=_parse_size, default=(640, 480), help="image size WxH [640x480]")
     parser.add_argument("--resume", action="store_true", help="keep the frames already in --out, make the rest")
     parser.add_argument("--preview", type=Path, help="also save a grid of the first 12 frames with keypoints here")
+    parser.add_argument(
+        "--renderer",
+        choices=RENDERERS,
+        default="torch",
+        help="torch: monose3's renderer [default]; tiny/egl: pybullet's (needs pybullet), for cross-renderer test sets",
+    )
 
 
 def run_generate(args: argparse.Namespace) -> int:
@@ -792,6 +832,7 @@ def run_generate(args: argparse.Namespace) -> int:
         args.backgrounds,
         args.size,
         resume=args.resume,
+        backend=args.renderer,
     )
     elapsed = time.perf_counter() - start
     print(f"wrote {args.num} frames to {out} in {elapsed:.1f} s ({args.num / max(elapsed, 1e-9):.1f} frames/s)")

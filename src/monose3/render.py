@@ -1,8 +1,11 @@
-"""Rendering the robot with pybullet: one client per process, and a pool for batches.
+"""pybullet as an independent reference renderer (optional: ``pip install pybullet``).
 
-Poses are camera-from-base in OpenCV axes (x right, y down, z forward); intrinsics are
-pixel-centre OpenCV intrinsics. On a machine with a GPU the EGL hardware renderer is used,
-otherwise pybullet's CPU TinyRenderer.
+monose3 renders with its own batched PyTorch renderer (:mod:`monose3.robot.renderer`);
+pybullet serves the tests that check that renderer's silhouettes and ``monose3 generate
+--renderer tiny|egl``, which makes evaluation sets with another renderer than the one the
+model was trained on (our stand-in for the synthetic-to-real gap). Same interface:
+:class:`~monose3.robot.renderer.RenderJob` in, ``(rgb, mask)`` out. Poses are camera-from-base
+in OpenCV axes; intrinsics are pixel-centre OpenCV intrinsics.
 """
 
 from __future__ import annotations
@@ -10,39 +13,22 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
-import pybullet as pb
 
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel, RobotSpec
+from monose3.robot.jobs import RenderJob
+
+try:
+    import pybullet as pb
+except ImportError:  # pragma: no cover - exercised where pybullet is not installed
+    pb = None
 
 NEAR, FAR = 0.01, 30.0
 # OpenCV camera axes -> OpenGL camera axes (y up, z backward).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-@dataclass(frozen=True)
-class Lighting:
-    """pybullet light settings; the defaults are a neutral studio light."""
-
-    direction: tuple[float, float, float] = (1.0, 1.0, 2.0)
-    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    ambient: float = 0.6
-    diffuse: float = 0.5
-    specular: float = 0.2
-
-
-@dataclass(frozen=True)
-class RenderJob:
-    """One render: joints in the model's joint order, camera-from-base 4x4, K 3x3, (width, height)."""
-
-    joints: np.ndarray
-    pose: np.ndarray
-    K: np.ndarray
-    size: tuple[int, int]
-    lighting: Lighting = Lighting()
 
 
 def projection_matrix(K: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -75,9 +61,24 @@ def resolve_backend(backend: str) -> str:
     in the parent so that worker processes need not import torch to find out."""
     if backend not in ("auto", "egl", "tiny"):
         raise Monose3Error(f"unknown render backend {backend!r}; use auto, egl or tiny")
+    if pb is None:
+        raise Monose3Error("the pybullet renderer needs pybullet: pip install pybullet (Python 3.11)")
     if backend == "auto":
         return "egl" if _egl_available() else "tiny"
     return backend
+
+
+# The built-in robots ship simplified meshes; pybullet renders its own full-resolution originals.
+PYBULLET_URDFS = {"panda": "franka_panda/panda.urdf", "kuka": "kuka_iiwa/model.urdf"}
+
+
+def pybullet_urdf(spec: RobotSpec) -> str:
+    """The URDF pybullet loads for ``spec``: pybullet_data's original for a built-in robot."""
+    if spec.mesh_asset and spec.name in PYBULLET_URDFS:
+        import pybullet_data
+
+        return str(Path(pybullet_data.getDataPath()) / PYBULLET_URDFS[spec.name])
+    return spec.urdf
 
 
 class Renderer:
@@ -90,10 +91,10 @@ class Renderer:
         if self.hardware:
             self._load_egl()
         try:
-            self.body = pb.loadURDF(self.model.spec.urdf, useFixedBase=True, physicsClientId=self.client)
+            self.body = pb.loadURDF(pybullet_urdf(self.model.spec), useFixedBase=True, physicsClientId=self.client)
         except pb.error as err:
             raise Monose3Error(
-                f"pybullet cannot load {self.model.spec.urdf}: {err}; check the URDF and its meshes"
+                f"pybullet cannot load {pybullet_urdf(self.model.spec)}: {err}; check the URDF and its meshes"
             ) from None
         self._joint_ids = {}
         for i in range(pb.getNumJoints(self.body, physicsClientId=self.client)):
@@ -154,12 +155,14 @@ class Renderer:
             K[1, 2] += 0.5
         proj = projection_matrix(K, width, height).T.reshape(-1)
         light = job.lighting
+        # Lighting is given in the camera frame; pybullet wants it in its world frame.
+        light_world = np.linalg.inv(cam_from_world)[:3, :3] @ np.asarray(light.direction, float)
         _, _, rgba, _, seg = pb.getCameraImage(
             width,
             height,
             viewMatrix=view.tolist(),
             projectionMatrix=proj.tolist(),
-            lightDirection=list(light.direction),
+            lightDirection=light_world.tolist(),
             lightColor=list(light.color),
             lightAmbientCoeff=light.ambient,
             lightDiffuseCoeff=light.diffuse,

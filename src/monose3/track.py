@@ -326,7 +326,6 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-step-deg", type=float, default=MAX_STEP_DEG, help="re-initialise when one step rotates more")
     p.add_argument("--gif-every", type=int, default=1, help="put every N-th frame in track.gif (0: no GIF)")
     p.add_argument("--fps", type=float, default=10.0, help="frame rate of track.gif")
-    p.add_argument("--workers", type=int, default=0, help="renderer processes (0: render in this process)")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto")
 
 
@@ -398,7 +397,7 @@ def run_track(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
 
     _check_args(args)
-    estimator = load_estimator(args.checkpoint, robot=args.robot, workers=args.workers, device=args.device)
+    estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
     out = Path(args.out)
     tiles: list[np.ndarray] = []
     try:

@@ -1,42 +1,14 @@
-"""``monose3 train``: Alg. 1 with checkpoints that resume exactly, TensorBoard/CSV logs and
-multi-GPU / multi-node training through ``torchrun`` (DistributedDataParallel)."""
+"""``monose3 train``: the command around :func:`monose3.training.loop.train` (Alg. 1), on DREAM
+folders, on scenes synthesised on the fly, or both; for a wall-clock budget or a step count;
+multi-GPU / multi-node through ``torchrun`` (DistributedDataParallel)."""
 
 from __future__ import annotations
 
 import argparse
-import csv
-import os
-import time
-from contextlib import nullcontext
 from pathlib import Path
 
-import torch
-import torch.distributed as dist
-from torch.utils.data import DataLoader
-from tqdm import tqdm
-
-from monose3.checkpoint import read_checkpoint, save_checkpoint
 from monose3.config import Config, get_preset, with_section
 from monose3.errors import Monose3Error
-from monose3.network import Denoiser, disentangled_loss
-from monose3.training_data import DenoisingSamples, GlobalSampleSampler
-
-CHECKPOINT = "checkpoint.pt"
-LOG_FIELDS = ["step", "loss", "loss_xy", "loss_rot", "loss_z", "lr", "samples_per_s"]
-
-
-def learning_rate(step: int, config: Config) -> float:
-    """Linear warm-up to the paper's 3e-4, then constant."""
-    tc = config.train
-    return tc.lr * min(1.0, (step + 1) / max(1, tc.warmup_steps))
-
-
-def _distributed() -> tuple[int, int, int]:
-    """(rank, local_rank, world_size); initialises the process group under torchrun."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-    return int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world
 
 
 def load_frames(data_dirs: list[str | Path], robot: str) -> list:
@@ -47,194 +19,40 @@ def load_frames(data_dirs: list[str | Path], robot: str) -> list:
         frames.extend(open_dataset(d, robot))
     if not frames:
         raise Monose3Error(
-            f"no usable frames in {', '.join(map(str, data_dirs))}; generate some with `monose3 generate`"
+            f"no usable frames in {', '.join(map(str, data_dirs))}; "
+            "generate some with `monose3 generate` or use --synthetic"
         )
     return frames
 
 
-class _Log:
-    """CSV (always) and TensorBoard (rank 0) logs; on resume, rows after the checkpoint are dropped."""
-
-    def __init__(self, out: Path, start_step: int):
-        self.path = out / "log.csv"
-        rows = []
-        if self.path.is_file() and start_step > 0:
-            with open(self.path) as fh:
-                rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= start_step]
-        with open(self.path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, LOG_FIELDS)
-            writer.writeheader()
-            writer.writerows(rows)
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(out / "tensorboard"), purge_step=start_step + 1 if start_step else None)
-
-    def write(self, row: dict[str, float]) -> None:
-        with open(self.path, "a", newline="") as fh:
-            csv.DictWriter(fh, LOG_FIELDS).writerow(row)
-        for key, value in row.items():
-            if key != "step":
-                self.tb.add_scalar(f"train/{key}", value, row["step"])
-
-    def close(self) -> None:
-        self.tb.close()
-
-
-def train_step(
-    model: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
-    batch: dict[str, torch.Tensor],
-    config: Config,
-    lr: float,
-    amp=nullcontext,
-    device: torch.device | str = "cpu",
-) -> tuple[float, dict[str, float]]:
-    """One optimiser step of Alg. 1 on a batch from :class:`DenoisingSamples`; returns the loss."""
-    batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    with amp():
-        raw = model(batch["render"], batch["crop"], batch["t"])
-    loss, parts = disentangled_loss(
-        raw.float(),
-        batch["pose_ref_t"],
-        batch["pose_ref_0"],
-        batch["K_crop"],
-        batch["points_ref"],
-        config.network.render_size[0],
-    )
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
-    optimizer.step()
-    return loss.item(), {k: v.item() for k, v in parts.items()}
-
-
-def train(
-    config: Config,
-    data_dirs: list[str | Path],
-    out_dir: str | Path,
-    resume: bool = False,
-    progress: bool = True,
-    frames: list | None = None,
-) -> list[float]:
-    """Train until ``config.train.max_steps``; returns the losses of the steps run here."""
-    rank, local_rank, world = _distributed()
-    device = torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    tc = config.train
-    torch.manual_seed(tc.seed)
-    model = Denoiser(config.network).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=tc.lr)
-    step = 0
-    ckpt_path = out / CHECKPOINT
-    if resume and ckpt_path.is_file():
-        state = read_checkpoint(ckpt_path)
-        saved = Config.from_dict(state["config"])
-        if (saved.robot, saved.preset, saved.network) != (config.robot, config.preset, config.network):
-            raise Monose3Error(f"{ckpt_path} was trained with another robot/preset/network; use a new --out")
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        step = int(state["step"])
-    ddp_model = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    frames = frames if frames is not None else load_frames(data_dirs, config.robot)
-    dataset = DenoisingSamples(frames, config, seed=tc.seed)
-    sampler = GlobalSampleSampler(step * tc.batch_size * world, tc.batch_size, rank, world)
-    loader = DataLoader(
-        dataset,
-        batch_size=tc.batch_size,
-        sampler=sampler,
-        num_workers=tc.num_workers,
-        persistent_workers=tc.num_workers > 0,
-        prefetch_factor=4 if tc.num_workers > 0 else None,
-    )
-    log = _Log(out, step) if rank == 0 else None
-    amp = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if device.type == "cuda" else nullcontext
-    bar = tqdm(total=tc.max_steps, initial=step, desc="train", unit="step", disable=not progress or rank != 0)
-    losses: list[float] = []
-    tick, seen, window = time.perf_counter(), 0, []
-    for batch in loader:
-        if step >= tc.max_steps:
-            break
-        lr = learning_rate(step, config)
-        loss, parts = train_step(ddp_model, optimizer, batch, config, lr, amp, device)
-        step += 1
-        seen += tc.batch_size * world
-        losses.append(loss)
-        window.append((loss, parts))
-        bar.update(1)
-        if log is not None and (step % tc.log_every == 0 or step == tc.max_steps):
-            rate = seen / (time.perf_counter() - tick)
-            # Logged losses are means over the logging window: single batches are too noisy to read.
-            mean = {k: sum(p[k] for _, p in window) / len(window) for k in ("xy", "rot", "z")}
-            row = {"step": step, "loss": sum(v for v, _ in window) / len(window), "lr": lr, "samples_per_s": rate}
-            row.update({f"loss_{k}": v for k, v in mean.items()})
-            tick, seen, window = time.perf_counter(), 0, []
-            bar.set_postfix(loss=f"{row['loss']:.4f}", samples_s=f"{rate:.1f}")
-            log.write(row)
-        if rank == 0 and (step % tc.checkpoint_every == 0 or step == tc.max_steps):
-            save_checkpoint(
-                ckpt_path,
-                {
-                    "model": model.state_dict(),
-                    "optimizer": optimizer.state_dict(),
-                    "step": step,
-                    "config": config.to_dict(),
-                    "robot": config.robot,
-                },
-            )
-    bar.close()
-    if log is not None:
-        log.close()
-        plot_training_logs(log.path, out / "loss.png")
-    if world > 1:
-        dist.barrier()
-    return losses
-
-
-def _running_mean(values: list[float], width: int) -> list[float]:
-    return [
-        sum(values[max(0, i - width + 1) : i + 1]) / len(values[max(0, i - width + 1) : i + 1])
-        for i in range(len(values))
-    ]
-
-
-def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path:
-    """The loss of a run (``log.csv``) and its three parts of Eq. 10, smoothed by a running mean."""
-    from monose3.viz import plot_curves
-
-    with open(log_csv) as fh:
-        rows = list(csv.DictReader(fh))
-    curves = {
-        name: _running_mean([float(r[col]) for r in rows], smooth)
-        for name, col in (("total", "loss"), ("v_xy", "loss_xy"), ("rotation", "loss_rot"), ("v_z", "loss_z"))
-    }
-    return plot_curves(
-        [int(r["step"]) for r in rows],
-        curves,
-        path,
-        xlabel="step",
-        ylabel="loss (Eq. 10, m)",
-        title=f"training loss, running mean of {smooth} log points",
-        logy=True,
-    )
-
-
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", nargs="+", required=True, help="DREAM folder(s) to train on")
-    p.add_argument("--out", required=True, help="run folder: checkpoint.pt, log.csv, tensorboard/")
+    p.add_argument("--data", nargs="+", default=[], help="DREAM folder(s) to train on")
+    p.add_argument(
+        "--synthetic", action="store_true", help="synthesise training scenes on the fly on the training device"
+    )
+    p.add_argument("--synthetic-ratio", type=float, default=0.5, help="with --data too: share of synthetic steps [0.5]")
+    p.add_argument(
+        "--profile", default="train", help="scene profile of synthetic scenes: train, reallike or hard [train]"
+    )
+    p.add_argument(
+        "--backgrounds", help="folder of photographs for synthetic backgrounds (default: scikit-image's, if installed)"
+    )
+    p.add_argument("--out", required=True, help="run folder: weights.json + shards, checkpoint.pt, log.csv, loss.png")
     p.add_argument("--preset", default="cpu", help="configuration preset: cpu (default) or paper")
-    p.add_argument("--robot", default="panda")
-    p.add_argument("--steps", type=int, help="total optimiser steps (overrides the preset)")
-    p.add_argument("--batch-size", type=int)
-    p.add_argument("--lr", type=float)
-    p.add_argument("--workers", type=int, help="data-loader worker processes (each renders)")
-    p.add_argument("--checkpoint-every", type=int)
+    p.add_argument("--robot", default="panda", help="robot to train for: panda or kuka [panda]")
+    p.add_argument("--steps", type=int, help="stop at this optimiser step (overrides the preset)")
+    p.add_argument("--minutes", type=float, help="stop cleanly after this much wall-clock time")
+    p.add_argument("--init", help="start from these weights (a shard folder / weights.json or a .pt checkpoint)")
+    p.add_argument("--batch-size", type=int, help="samples per optimiser step (per process)")
+    p.add_argument("--lr", type=float, help="peak learning rate [3e-4]")
+    p.add_argument("--workers", type=int, help="data-loader worker processes (decode frames / draw scenes)")
+    p.add_argument("--checkpoint-every", type=int, help="steps between full checkpoints (optimiser state included)")
+    p.add_argument("--shard-minutes", type=float, default=1.0, help="minutes between weight-shard writes [1]")
     p.add_argument("--noise", choices=["visdiff", "fixper"], help="forward process (default visdiff)")
     p.add_argument("--gamma", type=float, help="translation noise divisor of VisDiff (default 3)")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--seed", type=int, help="seed of every random draw of the run [0]")
+    p.add_argument("--resume", action="store_true", help="continue exactly from OUT/checkpoint.pt")
+    p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU)")
     p.add_argument("--threads", type=int, help="torch CPU threads for the network (default: all cores)")
 
 
@@ -248,19 +66,68 @@ def config_from_args(args: argparse.Namespace) -> Config:
         "checkpoint_every": args.checkpoint_every,
         "seed": args.seed,
     }
+    if args.minutes is not None and args.steps is None:
+        train_over["max_steps"] = 10**12  # the clock decides
     config = with_section(config, "train", **{k: v for k, v in train_over.items() if v is not None})
     diff_over = {"noise": args.noise, "gamma": args.gamma}
     return with_section(config, "diffusion", **{k: v for k, v in diff_over.items() if v is not None})
 
 
+def check_train_arguments(args: argparse.Namespace) -> None:
+    """Every refusal that needs no model: before anything is built or written."""
+    from monose3.generate import get_profile
+    from monose3.robot import get_spec
+
+    if args.minutes is not None and not args.minutes > 0:
+        raise Monose3Error(f"--minutes must be > 0, got {args.minutes}")
+    if args.shard_minutes <= 0:
+        raise Monose3Error(f"--shard-minutes must be > 0, got {args.shard_minutes}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise Monose3Error(f"--out {out} is a file; give a folder for the run")
+    if (out / "checkpoint.pt").is_file() and not args.resume:
+        raise Monose3Error(f"{out / 'checkpoint.pt'} exists; pass --resume to continue it or choose another --out")
+    if args.init and args.resume:
+        raise Monose3Error("--init starts a new run from weights, --resume continues one; pass only one")
+    if not args.data and not args.synthetic:
+        raise Monose3Error("no training data: pass --data DIR (DREAM folders) and/or --synthetic")
+    get_spec(args.robot)
+    get_profile(args.profile)
+    if args.backgrounds:
+        from monose3.generate import list_backgrounds
+
+        list_backgrounds(args.backgrounds)
+
+
 def run_train(args: argparse.Namespace) -> int:
+    check_train_arguments(args)
+    config = config_from_args(args)
+    import torch
+
+    from monose3.training.loop import Sources, train
+
+    if args.init:
+        from monose3.checkpoint import read_weights
+
+        read_weights(args.init)  # a missing, partial or corrupt --init fails before any work
     if args.threads:
         torch.set_num_threads(args.threads)
-    config = config_from_args(args)
-    ckpt = Path(args.out) / CHECKPOINT
-    if ckpt.is_file() and not args.resume:
-        raise Monose3Error(f"{ckpt} exists; pass --resume to continue it or choose another --out")
-    losses = train(config, args.data, args.out, resume=args.resume)
-    if losses:
-        print(f"trained to step {config.train.max_steps}; last loss {losses[-1]:.4f}; checkpoint {ckpt}")
+    frames = load_frames(args.data, config.robot) if args.data else []
+    sources = Sources(frames, args.synthetic, args.synthetic_ratio if frames else 1.0, args.profile, args.backgrounds)
+    result = train(
+        config,
+        args.out,
+        sources,
+        resume=args.resume,
+        init=args.init,
+        minutes=args.minutes,
+        shard_minutes=args.shard_minutes,
+        compile_model=args.compile,
+    )
+    if result.losses:
+        window = result.losses[-min(len(result.losses), config.train.log_every) :]
+        print(
+            f"trained to step {result.step} ({result.samples} samples seen, stopped by {result.stopped_by}); "
+            f"mean loss of the last {len(window)} steps {sum(window) / len(window):.4f}; weights in {args.out}"
+        )
     return 0

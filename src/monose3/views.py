@@ -8,7 +8,6 @@ import numpy as np
 import torch
 
 from monose3.camera import crop_boxes, crop_images, crop_intrinsics, project
-from monose3.render import RenderJob
 from monose3.se3 import transform_points
 
 
@@ -33,14 +32,6 @@ def crop_geometry(
 def image_to_tensor(image: np.ndarray) -> torch.Tensor:
     """``[H, W, 3]`` uint8 to ``[3, H, W]`` float in [0, 1]."""
     return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float().div_(255.0)
-
-
-def render_jobs(
-    joints: np.ndarray, pose_base: torch.Tensor, K_crop: torch.Tensor, render_size: tuple[int, int]
-) -> list[RenderJob]:
-    """One render job per row: joints ``[B, n]``, camera-from-base ``[B, 4, 4]``, crop K."""
-    poses, Ks = pose_base.double().cpu().numpy(), K_crop.double().cpu().numpy()
-    return [RenderJob(joints[i], poses[i], Ks[i], render_size) for i in range(len(poses))]
 
 
 def crop_batch(images: torch.Tensor, boxes: torch.Tensor, render_size: tuple[int, int]) -> torch.Tensor:

@@ -1,8 +1,8 @@
 """Robot model: URDF kinematics, keypoints and surface points.
 
 The URDF is parsed here (joints, link visuals) and forward kinematics is a batched numpy
-product over the kinematic tree, so the training loss and the metrics never call a
-simulator. The renderer loads the same URDF in pybullet; tests check both agree.
+product over the kinematic tree, so the training loss, the metrics and the renderer never
+call a simulator. Tests check it against pybullet's forward kinematics.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-import pybullet_data
 
 from monose3.errors import Monose3Error
+from monose3.robot.meshes import RobotMesh, Visual, check_visual_files, mesh_from_visuals, parse_visuals
 from monose3.se3_np import axis_angle_to_matrix_np, rpy_to_matrix_np
 
 NUM_SURFACE_POINTS = 2000
@@ -40,15 +40,17 @@ class RobotSpec:
     urdf: str
     keypoints: tuple[Keypoint, ...]
     optional_joints: Mapping[str, float] = field(default_factory=dict)
+    # A compact mesh file (RobotMesh.save) used instead of the URDF's visual files.
+    mesh_asset: str | None = None
 
 
-def _pybullet_data(rel: str) -> str:
-    return str(Path(pybullet_data.getDataPath()) / rel)
+ASSETS = Path(__file__).resolve().parent.parent / "assets" / "robots"
 
 
 PANDA = RobotSpec(
     name="panda",
-    urdf=_pybullet_data("franka_panda/panda.urdf"),
+    urdf=str(ASSETS / "panda" / "panda.urdf"),
+    mesh_asset=str(ASSETS / "panda" / "meshes.npz"),
     keypoints=tuple(
         Keypoint(n, n)
         for n in (
@@ -67,7 +69,8 @@ PANDA = RobotSpec(
 
 KUKA = RobotSpec(
     name="kuka",
-    urdf=_pybullet_data("kuka_iiwa/model.urdf"),
+    urdf=str(ASSETS / "kuka" / "model.urdf"),
+    mesh_asset=str(ASSETS / "kuka" / "meshes.npz"),
     # DREAM's Kuka sets name the keypoints iiwa7_link_N; pybullet's URDF names the links lbr_iiwa_link_N.
     keypoints=tuple(Keypoint(f"iiwa7_link_{i}", f"lbr_iiwa_link_{i}") for i in range(8)),
 )
@@ -89,7 +92,9 @@ def spec_from_files(urdf: str | Path, keypoints_json: str | Path, name: str | No
             f"malformed keypoint spec {kp_path}: {err!r}; expected "
             '{"keypoints": [{"name": ..., "link": ..., "offset": [x, y, z]}]}'
         ) from None
-    return RobotSpec(name=name or urdf.stem, urdf=str(urdf), keypoints=kps)
+    # The shipped URDFs come with their meshes as one compact asset, not as files beside them.
+    shipped = next((s.mesh_asset for s in ROBOTS.values() if Path(s.urdf).resolve() == urdf.resolve()), None)
+    return RobotSpec(name=name or urdf.stem, urdf=str(urdf), keypoints=kps, mesh_asset=shipped)
 
 
 def get_spec(robot: str | RobotSpec) -> RobotSpec:
@@ -116,14 +121,6 @@ class _Joint:
     offset: float = 0.0
 
 
-@dataclass
-class _Visual:
-    link: str
-    mesh: Path
-    origin: np.ndarray
-    scale: np.ndarray
-
-
 def _origin(elem: ET.Element | None) -> np.ndarray:
     pose = np.eye(4)
     if elem is not None:
@@ -132,16 +129,7 @@ def _origin(elem: ET.Element | None) -> np.ndarray:
     return pose
 
 
-def _resolve_mesh(filename: str, urdf_dir: Path) -> Path:
-    rel = filename.split("://", 1)[1] if "://" in filename else filename
-    # package://pkg/x resolves against the URDF folder in pybullet's data layout.
-    for cand in (urdf_dir / rel, urdf_dir / rel.split("/", 1)[-1]):
-        if cand.is_file():
-            return cand
-    raise Monose3Error(f"mesh {filename!r} referenced by the URDF not found next to {urdf_dir}")
-
-
-def _parse_urdf(path: Path) -> tuple[str, list[str], list[_Joint], list[_Visual]]:
+def _parse_urdf(path: Path) -> tuple[str, list[str], list[_Joint], list[Visual]]:
     try:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError) as err:
@@ -169,39 +157,13 @@ def _parse_urdf(path: Path) -> tuple[str, list[str], list[_Joint], list[_Visual]
     roots = [n for n in links if n not in children]
     if len(roots) != 1:
         raise Monose3Error(f"URDF {path} must have exactly one root link, found {roots}")
-    visuals = []
-    for link in root.findall("link"):
-        for vis in link.findall("visual"):
-            mesh = vis.find("geometry/mesh")
-            if mesh is None:
-                continue
-            scale = np.array(mesh.get("scale", "1 1 1").split(), float)
-            visuals.append(
-                _Visual(
-                    link=link.get("name"),
-                    mesh=_resolve_mesh(mesh.get("filename"), path.parent),
-                    origin=_origin(vis.find("origin")),
-                    scale=scale,
-                )
-            )
-    return roots[0], links, joints, visuals
+    return roots[0], links, joints, parse_visuals(root, path.parent)
 
 
-def load_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices ``[V, 3]`` and triangles ``[F, 3]`` of a Wavefront OBJ (polygons fan-split)."""
-    verts, faces = [], []
-    with open(path) as fh:
-        for line in fh:
-            if line.startswith("v "):
-                verts.append([float(x) for x in line.split()[1:4]])
-            elif line.startswith("f "):
-                idx = [int(tok.split("/")[0]) for tok in line.split()[1:]]
-                idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
-                faces.extend([idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1))
-    return np.asarray(verts, np.float64), np.asarray(faces, np.int64).reshape(-1, 3)
-
-
-def _sample_surface(verts: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+def _sample_surface(
+    verts: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` points uniform over the mesh surface and the face each lies on."""
     tri = verts[faces]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     pick = rng.choice(len(faces), size=n, p=area / area.sum())
@@ -209,7 +171,7 @@ def _sample_surface(verts: np.ndarray, faces: np.ndarray, n: int, rng: np.random
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     t = tri[pick]
-    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0]), pick
 
 
 class RobotModel:
@@ -234,6 +196,8 @@ class RobotModel:
         for kp in self.spec.keypoints:
             if kp.link not in self.link_index:
                 raise Monose3Error(f"keypoint {kp.name!r} names unknown link {kp.link!r} in {self.urdf_path.name}")
+        if not self.spec.mesh_asset:
+            check_visual_files(self._visuals, self.urdf_path)
 
     @property
     def name(self) -> str:
@@ -350,27 +314,21 @@ class RobotModel:
         return np.einsum("bij,bkj->bki", cam[:, :3, :3], points) + cam[:, None, :3, 3]
 
     @cached_property
+    def mesh(self) -> RobotMesh:
+        """The visual triangles in link frames: the shipped asset, or the URDF's OBJ/STL files."""
+        if self.spec.mesh_asset:
+            mesh = RobotMesh.load(self.spec.mesh_asset)
+            if mesh.links != tuple(self.links):
+                raise Monose3Error(f"mesh asset {self.spec.mesh_asset} belongs to another URDF than {self.urdf_path}")
+            return mesh
+        return mesh_from_visuals(self._visuals, self.links, self.urdf_path)
+
+    @cached_property
     def _surface_local(self) -> tuple[np.ndarray, np.ndarray]:
         """Surface samples in their link frames and the link each belongs to (seed 0)."""
-        rng = np.random.default_rng(0)
-        meshes, areas = [], []
-        for vis in self._visuals:
-            if vis.mesh.suffix.lower() != ".obj":
-                continue
-            verts, faces = load_obj(vis.mesh)
-            verts = verts * vis.scale @ vis.origin[:3, :3].T + vis.origin[:3, 3]
-            tri = verts[faces]
-            areas.append(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
-            meshes.append((vis.link, verts, faces))
-        if not meshes:
-            raise Monose3Error(f"URDF {self.urdf_path.name} has no OBJ visual meshes to sample points from")
-        counts = np.floor(np.asarray(areas) / sum(areas) * NUM_SURFACE_POINTS).astype(int)
-        counts[np.argmax(counts)] += NUM_SURFACE_POINTS - counts.sum()
-        pts, link_ids = [], []
-        for (link, verts, faces), n in zip(meshes, counts, strict=True):
-            pts.append(_sample_surface(verts, faces, n, rng))
-            link_ids.append(np.full(n, self.link_index[link]))
-        return np.concatenate(pts), np.concatenate(link_ids)
+        mesh = self.mesh
+        points, faces = _sample_surface(mesh.vertices, mesh.faces, NUM_SURFACE_POINTS, np.random.default_rng(0))
+        return points, mesh.face_link[faces]
 
     def surface_points(self, joints: np.ndarray) -> np.ndarray:
         """``[B, 2000, 3]`` fixed surface samples of the posed robot in the base frame."""

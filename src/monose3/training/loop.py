@@ -1,0 +1,360 @@
+"""Alg. 1: the training loop, its sources of samples, logs, checkpoints and weight shards.
+
+Samples come from DREAM folders, from scenes synthesised on the training device, or from both
+at a ratio. The loop runs to a step count or a wall-clock budget (``minutes``), writes a full
+checkpoint (exact resume) every ``checkpoint_every`` steps and half-precision weight shards
+every ``shard_minutes``, and can start from another run's shards (``init``).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import time
+from collections.abc import Iterator
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from monose3.checkpoint import read_checkpoint, read_weights, save_checkpoint
+from monose3.config import Config
+from monose3.diffusion import make_noiser
+from monose3.errors import Monose3Error
+from monose3.network import Denoiser, disentangled_loss
+from monose3.robot import RobotModel
+from monose3.robot.renderer import RobotRenderer
+from monose3.training.samples import FrameDataset, GlobalSampleSampler, frames_batch, noisy_views, step_generator
+from monose3.training.shards import write_shards
+from monose3.training.synthetic import SceneDataset, load_photos, synthesize_crops
+
+CHECKPOINT = "checkpoint.pt"
+LOG_FIELDS = ["step", "samples", "loss", "loss_xy", "loss_rot", "loss_z", "lr", "samples_per_s", "source"]
+
+
+@dataclass
+class Sources:
+    """Where samples come from: DREAM ``frames``, synthetic scenes, or both (``synthetic_ratio``
+    of the steps synthetic). ``backgrounds``: a folder of photographs for synthetic scenes."""
+
+    frames: list = field(default_factory=list)
+    synthetic: bool = False
+    synthetic_ratio: float = 1.0
+    profile: str = "train"
+    backgrounds: str | Path | None = None
+
+    def __post_init__(self) -> None:
+        if not self.frames and not self.synthetic:
+            raise Monose3Error("no training data: pass --data DIR (DREAM folders) and/or --synthetic")
+        if not 0.0 <= self.synthetic_ratio <= 1.0:
+            raise Monose3Error(f"--synthetic-ratio must lie in [0, 1], got {self.synthetic_ratio}")
+
+
+@dataclass
+class TrainResult:
+    losses: list[float]
+    step: int
+    samples: int
+    stopped_by: str  # "steps" or "minutes"
+
+
+def learning_rate(step: int, config: Config) -> float:
+    """Linear warm-up (over steps since the run's start) to the paper's 3e-4, then constant."""
+    tc = config.train
+    return tc.lr * min(1.0, (step + 1) / max(1, tc.warmup_steps))
+
+
+def _distributed() -> tuple[int, int, int]:
+    """(rank, local_rank, world_size); initialises the process group under torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world
+
+
+class _Log:
+    """CSV (always) and TensorBoard (rank 0) logs; on resume, rows after the checkpoint are dropped."""
+
+    def __init__(self, out: Path, start_step: int):
+        self.path = out / "log.csv"
+        rows = []
+        if self.path.is_file() and start_step > 0:
+            with open(self.path) as fh:
+                rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= start_step]
+        with open(self.path, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, LOG_FIELDS, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.tb = SummaryWriter(str(out / "tensorboard"), purge_step=start_step + 1 if start_step else None)
+
+    def write(self, row: dict) -> None:
+        with open(self.path, "a", newline="") as fh:
+            csv.DictWriter(fh, LOG_FIELDS, extrasaction="ignore").writerow(row)
+        for key, value in row.items():
+            if key not in ("step", "source"):
+                self.tb.add_scalar(f"train/{key}", value, row["step"])
+
+    def close(self) -> None:
+        self.tb.close()
+
+
+def train_step(
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    batch: dict[str, torch.Tensor],
+    config: Config,
+    lr: float,
+    amp=nullcontext,
+) -> tuple[float, dict[str, float]]:
+    """One optimiser step of Alg. 1 on a batch (tensors on the model's device); returns the loss."""
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    with amp():
+        raw = model(batch["render"], batch["crop"], batch["t"])
+    loss, parts = disentangled_loss(
+        raw.float(),
+        batch["pose_ref_t"],
+        batch["pose_ref_0"],
+        batch["K_crop"],
+        batch["points_ref"],
+        config.network.render_size[0],
+    )
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
+    optimizer.step()
+    return loss.item(), {k: v.item() for k, v in parts.items()}
+
+
+class BatchMaker:
+    """Makes the batch of each step from the sources, on ``device``."""
+
+    def __init__(self, config: Config, sources: Sources, device: torch.device, start: int, rank: int, world: int):
+        tc = config.train
+        self.config, self.sources, self.device = config, sources, device
+        self.robot = RobotModel(config.robot)
+        self.renderer = RobotRenderer(self.robot, device)
+        self.noiser = make_noiser(config.diffusion)
+        self.rank, self.world = rank, world
+        self.photos = load_photos(sources.backgrounds, device) if sources.synthetic else None
+        self.profile = sources.profile
+        loader = lambda ds: DataLoader(  # noqa: E731
+            ds,
+            batch_size=tc.batch_size,
+            sampler=GlobalSampleSampler(start * tc.batch_size * world, tc.batch_size, rank, world),
+            num_workers=tc.num_workers,
+            persistent_workers=tc.num_workers > 0,
+            prefetch_factor=4 if tc.num_workers > 0 else None,
+            pin_memory=device.type == "cuda",
+        )
+        self._frames: Iterator | None = (
+            iter(loader(FrameDataset(sources.frames, config, tc.seed))) if sources.frames else None
+        )
+        scenes = SceneDataset(self.robot.spec, sources.profile, config.network.input_size, tc.seed)
+        self._scenes: Iterator | None = iter(loader(scenes)) if sources.synthetic else None
+
+    def source_of(self, step: int) -> str:
+        if self._frames is None:
+            return "synthetic"
+        if self._scenes is None:
+            return "frames"
+        draw = np.random.default_rng([self.config.train.seed, step, 7]).random()
+        return "synthetic" if draw < self.sources.synthetic_ratio else "frames"
+
+    def batch(self, step: int) -> tuple[str, dict[str, torch.Tensor]]:
+        # Both streams advance every step, so which source a step uses does not shift the others.
+        source = self.source_of(step)
+        frames = next(self._frames) if self._frames is not None else None
+        scenes = next(self._scenes) if self._scenes is not None else None
+        seed = self.config.train.seed * 1000 + self.rank
+        gen = step_generator(seed, step)
+        if source == "frames":
+            return source, frames_batch(frames, self.robot, self.renderer, self.noiser, self.config, gen, self.device)
+        return source, self.synthetic_batch(scenes, gen, step_generator(seed, step, self.device))
+
+    def synthetic_batch(self, scenes, gen: torch.Generator, device_gen: torch.Generator) -> dict[str, torch.Tensor]:
+        from monose3.generate import get_profile
+        from monose3.training.samples import denoising_batch
+
+        net = self.config.network
+        joints = scenes["joints"].numpy()
+        views = noisy_views(self.robot, self.noiser, self.config, scenes["pose"], joints, scenes["K"], gen)
+        crops = synthesize_crops(
+            self.renderer,
+            scenes,
+            views,
+            net.render_size,
+            net.input_size,
+            get_profile(self.profile),
+            self.photos,
+            device_gen,
+            self.device,
+        )
+        return denoising_batch(views, crops, joints, self.renderer)
+
+
+def _init_weights(model: Denoiser, init: str | Path, config: Config) -> tuple[int, int]:
+    """Load ``init`` (shards or checkpoint) into ``model``; returns its (step, samples seen)."""
+    state = read_weights(init)
+    saved = Config.from_dict(state["config"])
+    if (saved.robot, saved.network) != (config.robot, config.network):
+        raise Monose3Error(
+            f"--init {init} holds a {saved.robot}/{saved.preset} model, not {config.robot}/{config.preset}; "
+            f"pass --preset {saved.preset} --robot {saved.robot} or another --init"
+        )
+    try:
+        model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()})
+    except RuntimeError as err:
+        raise Monose3Error(f"--init {init}: weights do not fit the network ({str(err)[:120]})") from None
+    step = int(state.get("step", 0))
+    return step, int(state.get("samples", step * saved.train.batch_size))
+
+
+def train(
+    config: Config,
+    out_dir: str | Path,
+    sources: Sources,
+    resume: bool = False,
+    init: str | Path | None = None,
+    minutes: float | None = None,
+    shard_minutes: float = 1.0,
+    progress: bool = True,
+    compile_model: bool = False,
+) -> TrainResult:
+    """Train until ``config.train.max_steps`` or ``minutes`` of wall clock, whichever comes first."""
+    started = time.perf_counter()
+    rank, local_rank, world = _distributed()
+    device = torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
+    out = Path(out_dir)
+    tc = config.train
+    torch.manual_seed(tc.seed)
+    model = Denoiser(config.network).to(device)
+    if device.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+    optimizer = torch.optim.Adam(model.parameters(), lr=tc.lr)
+    step = samples = warm_from = 0
+    ckpt_path = out / CHECKPOINT
+    if resume and ckpt_path.is_file():
+        state = read_checkpoint(ckpt_path)
+        saved = Config.from_dict(state["config"])
+        if (saved.robot, saved.preset, saved.network) != (config.robot, config.preset, config.network):
+            raise Monose3Error(f"{ckpt_path} was trained with another robot/preset/network; use a new --out")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, samples, warm_from = int(state["step"]), int(state.get("samples", 0)), int(state.get("warm_from", 0))
+    elif init is not None:
+        step, samples = _init_weights(model, init, config)
+        warm_from = step  # a fresh optimiser warms up again
+    maker = BatchMaker(config, sources, device, step, rank, world)
+    out.mkdir(parents=True, exist_ok=True)
+    ddp_model = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    net = torch.compile(ddp_model) if compile_model else ddp_model
+    log = _Log(out, step) if rank == 0 else None
+    amp = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if device.type == "cuda" else nullcontext
+    bar = tqdm(total=tc.max_steps, initial=step, desc="train", unit="step", disable=not progress or rank != 0)
+    losses: list[float] = []
+    tick, window, last_shard, stopped_by = time.perf_counter(), [], time.perf_counter(), "steps"
+    logged: dict[str, float] = {}
+    budget = None if minutes is None else minutes * 60.0
+    step_time = 0.0
+
+    def write_row(source: str) -> None:
+        nonlocal tick, window, logged
+        rate = len(window) * tc.batch_size * world / (time.perf_counter() - tick)
+        row = {"step": step, "samples": samples, "lr": learning_rate(step - 1 - warm_from, config)}
+        row.update({"samples_per_s": rate, "source": source, **window_means(window)})
+        tick, window, logged = time.perf_counter(), [], window_means(window)
+        bar.set_postfix(loss=f"{row['loss']:.4f}", samples_s=f"{rate:.1f}")
+        log.write(row)
+
+    def save_all(final: bool = False) -> None:
+        meta = {"config": config.to_dict(), "step": step, "samples": samples, "loss": window_means(window) or logged}
+        write_shards(out, model.state_dict(), meta)
+        if final or step % tc.checkpoint_every == 0:
+            save_checkpoint(
+                ckpt_path,
+                {
+                    "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "step": step,
+                    "samples": samples,
+                    "warm_from": warm_from,
+                    "config": config.to_dict(),
+                    "robot": config.robot,
+                },
+            )
+
+    while step < tc.max_steps:
+        if budget is not None and time.perf_counter() - started + 1.5 * step_time > budget:
+            stopped_by = "minutes"
+            break
+        begin = time.perf_counter()
+        source, batch = maker.batch(step)
+        loss, parts = train_step(net, optimizer, batch, config, learning_rate(step - warm_from, config), amp)
+        step += 1
+        samples += tc.batch_size * world
+        step_time = time.perf_counter() - begin
+        losses.append(loss)
+        window.append((loss, parts))
+        bar.update(1)
+        if log is not None and (step % tc.log_every == 0 or step == tc.max_steps):
+            write_row(source)
+        if rank == 0 and (step % tc.checkpoint_every == 0 or time.perf_counter() - last_shard > shard_minutes * 60):
+            save_all()
+            last_shard = time.perf_counter()
+    if log is not None and window:  # the steps since the last log row (a clock stop mid-window)
+        write_row(source)
+    bar.close()
+    if rank == 0 and losses:
+        save_all(final=True)
+    if log is not None:
+        log.close()
+        plot_training_logs(log.path, out / "loss.png")
+    if world > 1:
+        dist.barrier()
+    return TrainResult(losses, step, samples, stopped_by)
+
+
+def window_means(window: list[tuple[float, dict[str, float]]]) -> dict[str, float]:
+    """Mean loss and Eq. 10 parts over the logging window (single batches are too noisy to read)."""
+    if not window:
+        return {}
+    means = {f"loss_{k}": sum(p[k] for _, p in window) / len(window) for k in ("xy", "rot", "z")}
+    return {"loss": sum(v for v, _ in window) / len(window), **means}
+
+
+def _running_mean(values: list[float], width: int) -> list[float]:
+    return [
+        sum(values[max(0, i - width + 1) : i + 1]) / len(values[max(0, i - width + 1) : i + 1])
+        for i in range(len(values))
+    ]
+
+
+def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path | None:
+    """The loss of a run (``log.csv``) and its three parts of Eq. 10 against samples seen."""
+    from monose3.viz import plot_curves
+
+    with open(log_csv) as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return None
+    curves = {
+        name: _running_mean([float(r[col]) for r in rows], smooth)
+        for name, col in (("total", "loss"), ("v_xy", "loss_xy"), ("rotation", "loss_rot"), ("v_z", "loss_z"))
+    }
+    return plot_curves(
+        [int(r.get("samples") or 0) or int(r["step"]) for r in rows],
+        curves,
+        path,
+        xlabel="samples seen",
+        ylabel="loss (Eq. 10, m)",
+        title=f"training loss, running mean of {smooth} log points",
+        logy=True,
+    )

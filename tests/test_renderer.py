@@ -1,0 +1,267 @@
+"""The batched PyTorch renderer: its render agrees with the model's geometry and K (OpenCV
+pixel centres), batches equal single renders, no holes at any size, clear errors, and a CUDA
+out-of-memory error falls back to smaller chunks."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from monose3.errors import Monose3Error
+from monose3.robot import RobotModel, spec_from_files
+from monose3.robot.rasterize import rasterize
+from monose3.robot.renderer import Lighting, RenderJob, RobotRenderer
+
+ROBOTS = ("panda", "kuka")
+VIEWS_PER_ROBOT = 20
+
+
+def _mesh_vertices(model: RobotModel, q: np.ndarray) -> np.ndarray:
+    """Every mesh vertex, posed (base frame): the silhouette's extremes are among them."""
+    mesh = model.mesh
+    poses = model.link_poses(q[None])[0][mesh.vertex_link]
+    return np.einsum("nij,nj->ni", poses[:, :3, :3], mesh.vertices) + poses[:, :3, 3]
+
+
+def _on_mask_fraction(mask: np.ndarray, uv: np.ndarray) -> tuple[float, int]:
+    """Fraction of the in-image projected points that hit the mask dilated by one pixel."""
+    h, w = mask.shape
+    grown = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    px = np.round(uv).astype(int)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    if not inside.any():
+        return 1.0, 0
+    return float(grown[px[inside, 1], px[inside, 0]].mean()), int(inside.sum())
+
+
+@pytest.fixture(scope="module", params=ROBOTS)
+def rendered_views(request, models, renderers, sample_view):
+    """20 random views per robot (320x240), rendered in one batch."""
+    model = models[request.param]
+    rng = np.random.default_rng(10 if request.param == "panda" else 11)
+    views = [sample_view(model, rng) for _ in range(VIEWS_PER_ROBOT)]
+    out = renderers[request.param].render_jobs([RenderJob(v.joints, v.pose, v.K, v.size) for v in views])
+    return model, [(v, rgb, mask) for v, (rgb, mask) in zip(views, out, strict=True)]
+
+
+def test_render_outputs(rendered_views):
+    _, views = rendered_views
+    for _, rgb, mask in views:
+        assert rgb.shape == (240, 320, 3) and rgb.dtype == np.uint8
+        assert mask.shape == (240, 320) and mask.dtype == bool
+        assert mask.any()
+        assert not rgb[~mask].any(), "background must be black"
+        assert rgb[mask].max() > 30, "the robot must be lit"
+
+
+def test_projected_points_land_on_mask(rendered_views):
+    _, views = rendered_views
+    kp_hits = kp_total = 0
+    for view, _, mask in views:
+        frac, n = _on_mask_fraction(mask, view.uv())
+        assert n == 0 or frac >= 0.95, f"only {frac:.1%} of {n} surface points on the mask"
+        assert mask.mean() < 0.6
+        kfrac, kn = _on_mask_fraction(mask, view.uv(view.keypoints))
+        kp_hits += kfrac * kn
+        kp_total += kn
+    assert kp_total > 0 and kp_hits / kp_total >= 0.95
+
+
+def test_mask_box_matches_projected_geometry(rendered_views):
+    """A pixel is on the mask when its centre is inside the silhouette, whose extremes are mesh
+    vertices: the first/last mask pixel lies within one pixel inside the vertex extremes. A
+    half-pixel shift breaks this."""
+    model, views = rendered_views
+    checked = 0
+    for view, _, mask in views:
+        verts = _mesh_vertices(model, view.joints)
+        if not view.fully_in_view(verts, margin=1.0):
+            continue
+        checked += 1
+        ys, xs = np.nonzero(mask)
+        mbox = np.array([xs.min(), ys.min(), xs.max(), ys.max()], float)
+        vuv = view.uv(verts)
+        gap = (mbox - np.r_[vuv.min(0), vuv.max(0)]) * np.array([1, 1, -1, -1])
+        assert np.all(gap >= -1e-3) and np.all(gap <= 1.5), f"mask box {mbox} vs mesh box {vuv.min(0), vuv.max(0)}"
+    assert checked >= VIEWS_PER_ROBOT // 3, f"only {checked} views had the robot fully in view"
+
+
+def test_principal_point_shift_moves_the_mask(models, renderers, sample_view):
+    model, renderer = models["panda"], renderers["panda"]
+    rng = np.random.default_rng(12)
+    view = next(v for v in (sample_view(model, rng, dist=(1.5, 2.5)) for _ in range(50)) if v.fully_in_view(margin=40))
+    shifts = [(0, 0), (25, 0), (0, -17), (-31, 12)]
+    Ks = []
+    for dx, dy in shifts:
+        K = view.K.copy()
+        K[0, 2] += dx
+        K[1, 2] += dy
+        Ks.append(K)
+    masks = renderer.render([view.joints] * 4, [view.pose] * 4, Ks, view.size).mask.numpy()
+    for (dx, dy), moved in zip(shifts[1:], masks[1:], strict=True):
+        expected = np.roll(masks[0], (dy, dx), axis=(0, 1))
+        assert (moved != expected).mean() < 2e-3, f"shift ({dx}, {dy}) not reproduced"
+        assert (moved != masks[0]).mean() > 1e-2
+
+
+def test_a_batch_renders_as_its_images_one_by_one(models, renderers, sample_view):
+    model, renderer = models["kuka"], renderers["kuka"]
+    views = [sample_view(model, np.random.default_rng(30 + i)) for i in range(4)]
+    batch = renderer.render([v.joints for v in views], [v.pose for v in views], [v.K for v in views], (160, 120))
+    for i, v in enumerate(views):
+        one = renderer.render(v.joints[None], v.pose[None], v.K[None], (160, 120))
+        torch.testing.assert_close(batch.rgb[i], one.rgb[0])
+        assert torch.equal(batch.mask[i], one.mask[0])
+        torch.testing.assert_close(batch.depth[i], one.depth[0])
+
+
+def test_depth_is_the_camera_distance_of_the_surface(models, renderers, sample_view):
+    model = models["panda"]
+    view = sample_view(model, np.random.default_rng(31))
+    out = renderers["panda"].render(view.joints[None], view.pose[None], view.K[None], view.size)
+    depth, mask = out.depth[0].numpy(), out.mask[0].numpy()
+    assert (depth[~mask] == 0).all() and (depth[mask] > 0).all()
+    z = (_mesh_vertices(model, view.joints) @ view.pose[:3, :3].T + view.pose[:3, 3])[:, 2]
+    assert z.min() - 1e-3 <= depth[mask].min() and depth[mask].max() <= z.max() + 1e-3
+
+
+@pytest.mark.parametrize("size", [(64, 48), (128, 96), (320, 240), (640, 480)])
+def test_no_holes_or_speckle(models, renderers, sample_view, size):
+    """Against the same view rendered 4x finer: no pixel is background where all 16 of its
+    sub-pixels are robot (a hole), and none is robot where none of them is (speckle)."""
+    model, renderer = models["panda"], renderers["panda"]
+    rng = np.random.default_rng(32)
+    views = [sample_view(model, rng, size=size, dist=(0.6, 1.5)) for _ in range(3)]
+    fine_K = []
+    for v in views:
+        K = v.K.copy()
+        K[:2, :2] *= 4
+        K[:2, 2] = (K[:2, 2] + 0.5) * 4 - 0.5
+        fine_K.append(K)
+    w, h = size
+    joints, poses = [v.joints for v in views], [v.pose for v in views]
+    mask = renderer.render(joints, poses, [v.K for v in views], size).mask.numpy()
+    fine = renderer.render(joints, poses, fine_K, (4 * w, 4 * h)).mask.numpy()
+    cover = fine.reshape(len(views), h, 4, w, 4).sum((2, 4))
+    assert mask.sum() > 0.01 * mask.size
+    assert not (~mask & (cover == 16)).any(), "holes inside the robot"
+    assert not (mask & (cover == 0)).any(), "speckle outside the robot"
+
+
+def test_back_face_culling_keeps_every_pixel(models, renderers, sample_view):
+    """Back faces are skipped only on closed meshes, so the silhouette does not change."""
+    renderer = renderers["panda"]
+    view = sample_view(models["panda"], np.random.default_rng(33), dist=(0.6, 1.2))
+    pose = torch.as_tensor(view.pose)[None]
+    verts, _ = renderer.camera_vertices(renderer.camera_links(view.joints[None], pose))
+    faces = torch.as_tensor(models["panda"].mesh.faces)
+    cullable = torch.as_tensor(models["panda"].mesh.closed_faces())
+    K = torch.as_tensor(view.K)[None]
+    assert cullable.float().mean() > 0.2
+    both = rasterize(verts, faces, K, view.size)
+    culled = rasterize(verts, faces, K, view.size, cullable)
+    assert torch.equal(both.mask, culled.mask)
+    torch.testing.assert_close(both.depth, culled.depth, atol=2e-5, rtol=0)
+
+
+def test_lighting_and_colour_scale_change_colour_not_mask(models, renderers, sample_view):
+    renderer = renderers["kuka"]
+    view = sample_view(models["kuka"], np.random.default_rng(13), dist=(1.5, 2.0))
+    args = (view.joints[None], view.pose[None], view.K[None], view.size)
+    base = renderer.render(*args)
+    dim = renderer.render(*args, lighting=Lighting(ambient=0.1, diffuse=0.2, specular=0.0))
+    red = renderer.render(*args, color_scale=torch.tensor([1.0, 0.2, 0.2]).expand(1, len(models["kuka"].links), 3))
+    assert torch.equal(base.mask, dim.mask) and torch.equal(base.mask, red.mask)
+    m = base.mask[0]
+    assert dim.rgb[0][:, m].mean() < base.rgb[0][:, m].mean() - 0.05
+    assert red.rgb[0][1, m].mean() < 0.5 * base.rgb[0][1, m].mean()
+
+
+def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeypatch):
+    renderer = RobotRenderer(models["panda"])
+    views = [sample_view(models["panda"], np.random.default_rng(40 + i)) for i in range(4)]
+    args = ([v.joints for v in views], [v.pose for v in views], [v.K for v in views], (96, 72))
+    expected = renderer.render(*args)
+    real = renderer._render
+    calls = []
+
+    def tight(q, *rest):
+        calls.append(len(q))
+        if len(q) > 1:
+            raise torch.OutOfMemoryError("simulated")
+        return real(q, *rest)
+
+    monkeypatch.setattr(renderer, "_render", tight)
+    got = renderer.render(*args)
+    assert calls[0] == 4 and calls.count(1) == 4
+    assert torch.equal(got.mask, expected.mask)
+    torch.testing.assert_close(got.rgb, expected.rgb)
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"size": (0, 48)}, "positive integers"),
+        ({"K": np.full((1, 3, 3), np.nan)}, "finite"),
+        ({"joints": np.zeros((2, 9))}, "batch sizes differ"),
+        ({"joints": np.zeros((1, 3))}, "values per row"),
+        ({"pose": torch.eye(4, device="meta")[None], "K": torch.eye(3)[None]}, "different devices"),
+    ],
+)
+def test_bad_input_gets_one_clear_error(models, renderers, change, words):
+    model = models["panda"]
+    args = {"joints": np.zeros((1, len(model.joint_names))), "pose": np.eye(4)[None], "K": np.eye(3)[None]}
+    args["pose"][0, 2, 3] = 2.0
+    args["K"][0, :2] = [[100, 0, 32], [0, 100, 24]]
+    size = change.pop("size", (64, 48))
+    args.update(change)
+    with pytest.raises(Monose3Error, match=words):
+        renderers["panda"].render(args["joints"], args["pose"], args["K"], size)
+
+
+def _urdf(tmp_path, mesh: str | None) -> str:
+    visual = f'<visual><geometry><mesh filename="{mesh}"/></geometry></visual>' if mesh else ""
+    return (
+        '<robot name="stick"><link name="base">'
+        + visual
+        + '</link><link name="tip"/>'
+        + '<joint name="j1" type="revolute"><parent link="base"/><child link="tip"/>'
+        + '<axis xyz="0 0 1"/><limit lower="-1" upper="1"/></joint></robot>'
+    )
+
+
+def _custom_robot(tmp_path, mesh: str | None):
+    (tmp_path / "robot.urdf").write_text(_urdf(tmp_path, mesh))
+    (tmp_path / "kp.json").write_text('{"keypoints": [{"name": "tip", "link": "tip"}]}')
+    return spec_from_files(tmp_path / "robot.urdf", tmp_path / "kp.json")
+
+
+def test_a_users_urdf_with_obj_meshes_renders(tmp_path):
+    # a 0.2 m cube with a red material
+    (tmp_path / "cube.mtl").write_text("newmtl red\nKd 1 0 0\n")
+    corners = [(x, y, z) for x in (-0.1, 0.1) for y in (-0.1, 0.1) for z in (-0.1, 0.1)]
+    quads = [(1, 3, 4, 2), (5, 6, 8, 7), (1, 2, 6, 5), (3, 7, 8, 4), (1, 5, 7, 3), (2, 4, 8, 6)]
+    text = "mtllib cube.mtl\nusemtl red\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in corners)
+    text += "".join("f " + " ".join(map(str, q)) + "\n" for q in quads)
+    (tmp_path / "cube.obj").write_text(text)
+    renderer = RobotRenderer(RobotModel(_custom_robot(tmp_path, "cube.obj")))
+    K = np.array([[[200.0, 0, 63.5], [0, 200.0, 47.5], [0, 0, 1]]])
+    pose = np.eye(4)[None]
+    pose[0, 2, 3] = 1.0
+    out = renderer.render(np.zeros((1, 1)), pose, K, (128, 96))
+    # the cube's front face spans 0.2 m * 200 px / 0.9 m = 44 px, centred, red
+    cols = np.nonzero(out.mask[0].numpy().any(0))[0]
+    assert abs((cols.max() - cols.min() + 1) - 0.2 * 200 / 0.9) <= 1.5
+    rgb = out.rgb[0][:, out.mask[0]]
+    assert rgb[0].mean() > 0.5 and rgb[1].max() < 0.35
+
+
+@pytest.mark.parametrize(
+    ("mesh", "words"), [("missing.obj", "not found"), ("arm.dae", "convert it to OBJ or STL"), (None, "no visual")]
+)
+def test_robot_files_the_renderer_cannot_use(tmp_path, mesh, words):
+    (tmp_path / "arm.dae").write_text("<COLLADA/>")
+    with pytest.raises(Monose3Error, match=words):
+        RobotModel(_custom_robot(tmp_path, mesh))
