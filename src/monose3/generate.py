@@ -760,19 +760,8 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, type=Path, help="output folder (DREAM layout)")
-    parser.add_argument("--num", required=True, type=int, help="number of frames")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (same seed = same data) [0]")
-    parser.add_argument("--robot", default="panda", help="robot name: panda or kuka [panda]")
-    parser.add_argument("--urdf", type=Path, help="custom robot: URDF file (with --keypoints)")
-    parser.add_argument("--keypoints", type=Path, help='custom robot: {"keypoints": [{"name", "link", "offset"}]}')
-    parser.add_argument("--workers", type=int, default=None, help="processes [one per CPU core]; 0 = no subprocess")
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="train", help="scene randomisation [train]")
-    parser.add_argument("--backgrounds", type=Path, help="folder of images to use as some of the backgrounds")
-    parser.add_argument("--size", type=_parse_size, default=(640, 480), help="image size WxH [640x480]")
-    parser.add_argument("--resume", action="store_true", help="keep the frames already in --out, make the rest")
-    parser.add_argument("--preview", type=Path, help="also save a grid of the first 12 frames with keypoints here")
+# The options live in the torch-free monose3.commands (fast --help and input errors).
+from monose3.commands import add_generate_arguments  # noqa: E402, F401
 
 
 def run_generate(args: argparse.Namespace) -> int:

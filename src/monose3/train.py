@@ -221,21 +221,8 @@ def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path:
     )
 
 
-def add_train_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", nargs="+", required=True, help="DREAM folder(s) to train on")
-    p.add_argument("--out", required=True, help="run folder: checkpoint.pt, log.csv, tensorboard/")
-    p.add_argument("--preset", default="cpu", help="configuration preset: cpu (default) or paper")
-    p.add_argument("--robot", default="panda")
-    p.add_argument("--steps", type=int, help="total optimiser steps (overrides the preset)")
-    p.add_argument("--batch-size", type=int)
-    p.add_argument("--lr", type=float)
-    p.add_argument("--workers", type=int, help="data-loader worker processes (each renders)")
-    p.add_argument("--checkpoint-every", type=int)
-    p.add_argument("--noise", choices=["visdiff", "fixper"], help="forward process (default visdiff)")
-    p.add_argument("--gamma", type=float, help="translation noise divisor of VisDiff (default 3)")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--threads", type=int, help="torch CPU threads for the network (default: all cores)")
+# The options live in the torch-free monose3.commands (fast --help and input errors).
+from monose3.commands import add_train_arguments  # noqa: E402, F401
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
