@@ -268,8 +268,6 @@ def _parse_size(text: str) -> tuple[int, int]:
         w, h = (int(x) for x in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"size must look like 640x480, got {text!r}") from None
-    if w < v.MIN_IMAGE_SIDE or h < v.MIN_IMAGE_SIDE:
-        raise argparse.ArgumentTypeError(f"size must be at least {v.MIN_IMAGE_SIDE}x{v.MIN_IMAGE_SIDE}, got {text!r}")
     return w, h
 
 
