@@ -84,6 +84,8 @@ def _joints_from_obj(obj: Any, source: str) -> dict[str, Any] | list[Any]:
         return dict(obj)
     if isinstance(obj, (list, tuple, np.ndarray)):
         items = list(obj)
+        if len(items) == 1 and isinstance(items[0], (list, tuple, np.ndarray)):
+            items = list(items[0])  # the one row of a [1, n] array
         if items and all(isinstance(it, Mapping) for it in items):
             # DREAM sim_state style: [{"name": ..., "position": ...}, ...]
             out: dict[str, Any] = {}
