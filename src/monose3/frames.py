@@ -52,7 +52,10 @@ class ImageFrame:
                 f"{where} is {w}x{h} but the camera intrinsics are for {self.image_size[0]}x{self.image_size[1]}; "
                 "give intrinsics calibrated at the images' resolution"
             )
-        return img
+        from monose3.validation import check_image
+
+        where = self.image_path.name if self.image_path is not None else f"frame {self.name}"
+        return check_image(img, where, content=False)
 
 
 def _natural_key(name: str) -> list:
@@ -98,6 +101,9 @@ def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[ImageFrame]
             f"no camera.json in {folder}; add the intrinsics as camera.json {{fx, fy, cx, cy, width, height}}"
         )
     camera: CameraIntrinsics = load_camera(camera_file)
+    from monose3.validation import check_K
+
+    check_K(camera.K, camera.size, str(camera_file))  # implausible focal length, K for another size
     frames = []
     for image_name, stem in images:
         if stem not in joints_files:
