@@ -245,6 +245,7 @@ def cli_dir(tmp_path_factory):
     (d / "a_file").write_text("x")
     (d / "empty").mkdir()
     (d / "folder").mkdir()
+    (d / "no_header.csv").write_text("0.0,0.1\n0.2,0.3\n")
     return d
 
 
@@ -282,6 +283,10 @@ INPUT_ERRORS = {
     "other_robot": (["calibrate", "--frames", "folder", "--robot", "kuka"], "trained for robot 'panda'"),
     "train_no_data": (["train", "--data", "empty", "--out", "run"], "no"),
     "missing_data": (["evaluate", "--data", "nope"], "not found"),
+    "video_joints_csv": (
+        ["track", "--video", "a_file", "--camera", f"{S}/camera.json", "--joints-csv", "no_header.csv"],
+        "no header row",
+    ),
 }
 
 
@@ -297,7 +302,8 @@ def test_an_output_that_is_an_existing_file_is_refused_at_once(name, args, cli_d
 @pytest.mark.parametrize(("name", "case"), INPUT_ERRORS.items())
 def test_input_errors_answer_in_one_line_without_torch(name, case, cli_dir):
     args, needle = case
-    res = _run_without_torch(args, cli_dir)
+    sample = SRC / "monose3" / "assets" / "sample"
+    res = _run_without_torch([a.replace(S, str(sample)) for a in args], cli_dir)
     err = res.stderr.strip()
     assert res.returncode == 2 and len(err.splitlines()) == 1 and needle in err, (res.returncode, err)
     assert not (cli_dir / "run").exists()  # train with no data leaves no output folder

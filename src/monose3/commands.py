@@ -244,7 +244,7 @@ def check_track(args: argparse.Namespace) -> SimpleNamespace:
     check_track_args(args)
     out = v.check_output_dir(args.out, "--out")
     robot = v.check_checkpoint(args.checkpoint, args.robot)
-    frames = None
+    frames = video_joints = None
     if args.frames is not None:
         v.check_input_dir(args.frames, "--frames")
         if robot is not None:
@@ -252,12 +252,19 @@ def check_track(args: argparse.Namespace) -> SimpleNamespace:
 
             frames = load_frames(args.frames, _robot_model(robot))
             frames = frames[: args.limit] if args.limit is not None else frames
-    elif args.camera:
+    else:
+        from monose3.frames import load_joints_csv, load_joints_dir
         from monose3.inputs import load_camera
 
         camera = load_camera(args.camera)
         v.check_K(camera.K, camera.size, args.camera)
-    return SimpleNamespace(out=out, frames=frames)
+        if robot is not None:
+            model = _robot_model(robot)
+            if args.joints_csv:
+                video_joints = load_joints_csv(args.joints_csv, model)
+            else:
+                video_joints = load_joints_dir(args.joints, model)
+    return SimpleNamespace(out=out, frames=frames, video_joints=video_joints)
 
 
 # ---- generate -----------------------------------------------------------------------------------

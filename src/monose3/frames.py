@@ -6,6 +6,7 @@ folder layout is described in :mod:`monose3.calibrate`)."""
 
 from __future__ import annotations
 
+import csv
 import logging
 import os
 import re
@@ -24,6 +25,8 @@ log = logging.getLogger("monose3")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 JOINTS_SUFFIXES = (".joints.json", ".joints.yaml", ".joints.yml")
 CAMERA_FILES = ("camera.json", "camera.yaml", "camera.yml")
+IGNORED_CSV_COLUMNS = ("time", "timestamp", "stamp")
+NAME_CSV_COLUMNS = ("frame", "name")
 
 # ---- frames ----------------------------------------------------------------------------------
 
@@ -183,3 +186,66 @@ def format_skipped(
         return None
     names = ", ".join(s["frame"] for s in skipped[:shown]) + (", ..." if len(skipped) > shown else "")
     return f"{name}: skipped {len(skipped)} unusable frame(s): {names} (reasons in {where})"
+
+
+# ---- per-frame joints of a video (layouts in monose3.track) ---------------------------------------
+
+
+def load_joints_csv(path: str | Path, robot: RobotModel) -> tuple[list[str] | None, np.ndarray]:
+    """Frame names (from a ``frame``/``name`` column, else None) and joints ``[N, n]`` from a CSV
+    whose header names the joints (layout in the module docstring)."""
+    p = Path(path)
+    if not p.is_file():
+        raise Monose3Error(f"joints CSV not found: {p}; check the path")
+    with p.open(newline="", encoding="utf-8") as fh:
+        rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
+    if len(rows) < 2:
+        raise Monose3Error(f"{p} needs a header row of joint names and one row per frame; it has {len(rows)} row(s)")
+    header = [h.strip() for h in rows[0]]
+    lower = [h.lower() for h in header]
+    name_col = next((i for i, h in enumerate(lower) if h in NAME_CSV_COLUMNS), None)
+    joint_cols = [i for i, h in enumerate(lower) if i != name_col and h not in IGNORED_CSV_COLUMNS]
+    if all(_is_float(h) for h in header):
+        raise Monose3Error(
+            f"{p} has no header row; add a first row naming the joints (e.g. {robot.required_joints[0]})"
+        )
+    names, joints = [], []
+    for r, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise Monose3Error(f"{p} row {r} has {len(row)} values but the header has {len(header)}; fix the row")
+        values = {}
+        for i in joint_cols:
+            cell = row[i].strip()
+            if not _is_float(cell):
+                raise Monose3Error(f"{p} row {r}: {header[i]} = {cell!r} is not a number (radians)")
+            values[header[i]] = float(cell)
+        try:
+            joints.append(load_joints(values, robot))
+        except Monose3Error as err:
+            raise Monose3Error(f"{p} row {r}: {err}") from None
+        names.append(row[name_col].strip() if name_col is not None else None)
+    return (names if name_col is not None else None), np.stack(joints)
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def load_joints_dir(folder: str | Path, robot: RobotModel) -> tuple[list[str], np.ndarray]:
+    """Per-frame joint files of a folder (JSON/YAML, natural name order): names and ``[N, n]``."""
+    d = Path(folder)
+    if not d.is_dir():
+        raise Monose3Error(f"joints folder not found: {d}; give a folder with one joints JSON per frame")
+    files = sorted(
+        (e.name for e in os.scandir(d) if e.is_file() and e.name.lower().endswith((".json", ".yaml", ".yml"))),
+        key=_natural_key,
+    )
+    files = [f for f in files if not f.startswith("camera.")]
+    if not files:
+        raise Monose3Error(f"no joints files (.json/.yaml) in {d}; put one {{name: radians}} file per video frame")
+    names = [f.split(".")[0] for f in files]
+    return names, np.stack([load_joints(d / f, robot) for f in files])

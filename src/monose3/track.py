@@ -38,7 +38,6 @@ import argparse
 import csv
 import json
 import math
-import os
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -49,10 +48,17 @@ import cv2
 import numpy as np
 
 from monose3.atomic import atomic_path, write_text
-from monose3.calibrate import ImageFrame, _natural_key, draw_pose_overlays, load_frames
+from monose3.calibrate import ImageFrame, draw_pose_overlays, load_frames
 from monose3.errors import Monose3Error
-from monose3.frames import format_skipped, skipped_annotations
-from monose3.inputs import load_camera, load_joints
+from monose3.frames import (  # noqa: F401 - the joint-file readers are torch-free, so they live there
+    IGNORED_CSV_COLUMNS,
+    NAME_CSV_COLUMNS,
+    format_skipped,
+    load_joints_csv,
+    load_joints_dir,
+    skipped_annotations,
+)
+from monose3.inputs import load_camera
 from monose3.metrics import FAILURE_MM
 from monose3.robot import RobotModel
 from monose3.se3_average import rotation_angle
@@ -63,8 +69,6 @@ MAX_STEP_MM = 50.0
 MAX_STEP_DEG = 10.0
 GIF_TILE_WIDTH = 320
 PRINT_ALL_FRAMES = 40
-IGNORED_CSV_COLUMNS = ("time", "timestamp", "stamp")
-NAME_CSV_COLUMNS = ("frame", "name")
 
 MODE_FULL, MODE_TRACK = "full", "track"
 
@@ -240,66 +244,6 @@ def count_video_frames(path: str | Path) -> int:
     return n if n else sum(1 for _ in read_video(path))
 
 
-def load_joints_csv(path: str | Path, robot: RobotModel) -> tuple[list[str] | None, np.ndarray]:
-    """Frame names (from a ``frame``/``name`` column, else None) and joints ``[N, n]`` from a CSV
-    whose header names the joints (layout in the module docstring)."""
-    p = Path(path)
-    if not p.is_file():
-        raise Monose3Error(f"joints CSV not found: {p}; check the path")
-    with p.open(newline="", encoding="utf-8") as fh:
-        rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
-    if len(rows) < 2:
-        raise Monose3Error(f"{p} needs a header row of joint names and one row per frame; it has {len(rows)} row(s)")
-    header = [h.strip() for h in rows[0]]
-    lower = [h.lower() for h in header]
-    name_col = next((i for i, h in enumerate(lower) if h in NAME_CSV_COLUMNS), None)
-    joint_cols = [i for i, h in enumerate(lower) if i != name_col and h not in IGNORED_CSV_COLUMNS]
-    if all(_is_float(h) for h in header):
-        raise Monose3Error(
-            f"{p} has no header row; add a first row naming the joints (e.g. {robot.required_joints[0]})"
-        )
-    names, joints = [], []
-    for r, row in enumerate(rows[1:], start=2):
-        if len(row) != len(header):
-            raise Monose3Error(f"{p} row {r} has {len(row)} values but the header has {len(header)}; fix the row")
-        values = {}
-        for i in joint_cols:
-            cell = row[i].strip()
-            if not _is_float(cell):
-                raise Monose3Error(f"{p} row {r}: {header[i]} = {cell!r} is not a number (radians)")
-            values[header[i]] = float(cell)
-        try:
-            joints.append(load_joints(values, robot))
-        except Monose3Error as err:
-            raise Monose3Error(f"{p} row {r}: {err}") from None
-        names.append(row[name_col].strip() if name_col is not None else None)
-    return (names if name_col is not None else None), np.stack(joints)
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
-def load_joints_dir(folder: str | Path, robot: RobotModel) -> tuple[list[str], np.ndarray]:
-    """Per-frame joint files of a folder (JSON/YAML, natural name order): names and ``[N, n]``."""
-    d = Path(folder)
-    if not d.is_dir():
-        raise Monose3Error(f"joints folder not found: {d}; give a folder with one joints JSON per frame")
-    files = sorted(
-        (e.name for e in os.scandir(d) if e.is_file() and e.name.lower().endswith((".json", ".yaml", ".yml"))),
-        key=_natural_key,
-    )
-    files = [f for f in files if not f.startswith("camera.")]
-    if not files:
-        raise Monose3Error(f"no joints files (.json/.yaml) in {d}; put one {{name: radians}} file per video frame")
-    names = [f.split(".")[0] for f in files]
-    return names, np.stack([load_joints(d / f, robot) for f in files])
-
-
 def video_frames(
     video: str | Path, camera_file: str | Path, joints: np.ndarray, names: Sequence[str] | None = None
 ) -> Iterator[ImageFrame]:
@@ -328,7 +272,10 @@ def _frames_for(args: argparse.Namespace, robot: RobotModel) -> Iterable:
     if args.frames is not None:
         frames = load_frames(args.frames, robot)
         return frames[: args.limit] if args.limit is not None else frames
-    if args.joints_csv:
+    checked = getattr(args, "_checked", None)
+    if checked is not None and checked.video_joints is not None:
+        names, joints = checked.video_joints
+    elif args.joints_csv:
         names, joints = load_joints_csv(args.joints_csv, robot)
     else:
         names, joints = load_joints_dir(args.joints, robot)
