@@ -28,7 +28,7 @@ from monose3.dream import write_frame
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
 from monose3.network import Denoiser
-from monose3.robot.renderer import RenderJob
+from monose3.robot.jobs import RenderJob
 from monose3.se3_average import (
     geometric_median,
     make_pose_np,

@@ -19,7 +19,7 @@ from monose3.camera import (
     standardize_image,
 )
 from monose3.errors import Monose3Error
-from monose3.robot.renderer import RenderJob
+from monose3.robot.jobs import RenderJob
 
 CROP = (320, 240)
 

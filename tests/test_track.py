@@ -19,7 +19,7 @@ from monose3.dream import write_frame
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
 from monose3.network import Denoiser
-from monose3.robot.renderer import RenderJob
+from monose3.robot.jobs import RenderJob
 from monose3.track import (
     MODE_FULL,
     MODE_TRACK,

@@ -155,6 +155,8 @@ def test_cli_trains_on_synthetic_scenes_for_a_time_budget(tmp_path, capsys):
     assert main(["train", "--synthetic", "--out", str(tmp_path / "next"), "--batch-size", "2", "--init", str(out),
                  "--steps", str(meta["step"] + 1)]) == 0  # fmt: skip
     assert json.loads((tmp_path / "next" / "weights.json").read_text())["step"] == meta["step"] + 1
+    # and a run folder serves as --checkpoint
+    assert main(["demo", "--checkpoint", str(out), "--out", str(tmp_path / "demo"), "--chains", "1"]) == 0
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ def scene(h=120, w=160):
 
 def test_overlay_outline_changes_far_pixels_do_not():
     image, mask = scene()
-    out = draw_overlay(image, mask, color=(0, 255, 0))
+    out = draw_overlay(image, mask, color=(0, 255, 0), legend=False)
     assert out.shape == image.shape and out.dtype == np.uint8
     assert not np.shares_memory(out, image)
     # every boundary pixel of the mask is drawn in the outline colour (green channel high)
@@ -38,6 +38,19 @@ def test_overlay_outline_changes_far_pixels_do_not():
     far = np.ones(mask.shape, bool)
     far[30:90, 40:110] = False
     np.testing.assert_array_equal(out[far], image[far])
+
+
+def test_overlay_has_a_legend_for_its_colours():
+    image, mask = scene()
+    h = image.shape[0]
+    plain = draw_overlay(image, mask, legend=False)
+    est = draw_overlay(image, mask)
+    both = draw_overlay(image, mask, gt_keypoints_uv=[[140, 100]])
+    # the key sits in the bottom-left corner on a dark box, one row per colour shown
+    assert not np.array_equal(est[h - 12 :, :40], plain[h - 12 :, :40])
+    rows = lambda img: int((img[:, 0] == 0).all(axis=1).sum())  # noqa: E731 - dark rows of the box's left edge
+    assert rows(both) > rows(est) > 0
+    assert np.array_equal(est[:20, -20:], plain[:20, -20:])  # nothing elsewhere
 
 
 def test_overlay_keypoints_and_text():

@@ -1,5 +1,7 @@
-"""``python -m monose3``: the same as the ``monose3`` command (for a checkout run with PYTHONPATH=src)."""
+"""``python -m monose3``: the same as the ``monose3`` command."""
+
+import sys
 
 from monose3.cli import main
 
-raise SystemExit(main())
+sys.exit(main())

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from monose3 import atomic, validation
 from monose3.checkpoint import load_model
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate, PoseEstimator
-from monose3.inputs import CameraIntrinsics, check_image_camera, load_camera, load_image, load_joints, load_pose
 from monose3.robot import get_spec
 from monose3.robot.renderer import RenderJob, RobotRenderer
 from monose3.viz import draw_overlay, save_image
@@ -42,6 +42,7 @@ def load_estimator(
 
     if robot is not None:
         get_spec(robot)  # an unknown robot name fails here, before any loading
+    validation.check_checkpoint(checkpoint, robot)  # a folder, another robot: refused before torch.load
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     model, config = load_model(checkpoint or default_checkpoint(), robot=robot, device=device)
@@ -63,13 +64,23 @@ class PoseResult:
         return np.linalg.inv(self.camera_from_base)
 
     @property
-    def reliable(self) -> bool:
-        return self.chains < 2 or self.spread_mm <= UNRELIABLE_MM
+    def reliable(self) -> bool | None:
+        """Whether the chains agree within ``UNRELIABLE_MM``; None with one chain (nothing to compare)."""
+        if self.chains < 2 or not np.isfinite(self.spread_mm):
+            return None
+        return bool(self.spread_mm <= UNRELIABLE_MM)
 
     @property
-    def confidence(self) -> float:
-        """exp(-spread / 30 mm): 1 when the chains agree, 0.37 at the unreliable threshold."""
-        return float(np.exp(-self.spread_mm / UNRELIABLE_MM)) if self.chains > 1 else float("nan")
+    def confidence(self) -> float | None:
+        """exp(-spread / 30 mm): 1 when the chains agree, 0.37 at the unreliable threshold;
+        None with one chain (a single chain has no spread to measure)."""
+        if self.chains < 2 or not np.isfinite(self.spread_mm):
+            return None
+        return float(np.exp(-self.spread_mm / UNRELIABLE_MM))
+
+    @property
+    def confidence_text(self) -> str:
+        return "confidence n/a (1 chain)" if self.confidence is None else f"confidence {self.confidence:.2f}"
 
     def to_dict(self) -> dict:
         return {
@@ -78,10 +89,14 @@ class PoseResult:
             "base_from_camera": self.base_from_camera.tolist(),
             "confidence": self.confidence,
             "reliable": self.reliable,
-            "chain_spread_mm": float(self.spread_mm),
-            "chain_spread_deg": float(self.spread_deg),
+            "chain_spread_mm": _finite_or_none(self.spread_mm) if self.chains > 1 else None,
+            "chain_spread_deg": _finite_or_none(self.spread_deg) if self.chains > 1 else None,
             "chains": self.chains,
         }
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
 
 
 def estimate_pose(
@@ -94,22 +109,32 @@ def estimate_pose(
     seed: int = 0,
     prior: np.ndarray | None = None,
 ) -> PoseResult:
-    """Camera-from-base for one RGB image. With ``chains`` > 1, that many stochastic reverse
-    chains from perturbed initialisations run in one batch; their spread is the uncertainty.
-    ``prior``: an approximate camera-from-base (e.g. a previous calibration) to refine, from
-    ``InferenceConfig.prior_t``, instead of RoboPose's initialisation.
-    Raises Monose3Error when the estimate puts the robot outside the image."""
-    if prior is not None:
-        check_prior(estimator, prior, joints, K, np.asarray(image).shape[:2])
+    """Camera-from-base for one RGB image.
+
+    ``image``: ``H x W x 3`` uint8 RGB (``monose3.inputs.load_image`` reads a file); ``joints``:
+    ``{name: radians}``, or the arm's values in URDF order (7 for the Panda; 8 with the
+    gripper), as a list or an array of shape ``[n]`` or ``[1, n]`` (``load_joints`` reads a
+    file); ``K``: the 3x3 intrinsics of this image in pixels (``load_camera(path).K``). With
+    ``chains`` > 1, that many stochastic reverse chains from perturbed initialisations run in
+    one batch; their spread is the uncertainty (``chains=1``: confidence and reliable are None).
+    ``prior``: an approximate camera-from-base in metres (e.g. a previous calibration) to
+    refine, from ``InferenceConfig.prior_t``, instead of RoboPose's initialisation.
+
+    Every input goes through :mod:`monose3.validation` first (the same checks as ``monose3
+    estimate``); a bad one raises Monose3Error, as does an estimate that puts the robot outside
+    the image."""
+    image, joints, K, prior, chains = validation.check_estimate_inputs(
+        image, joints, K, estimator.robot, prior=prior, chains=chains, sampler=sampler
+    )
     est = estimator.estimate(
         [image],
-        np.asarray(K)[None],
-        np.asarray(joints)[None],
+        K[None],
+        joints[None],
         sampler=sampler,
         hypotheses=chains,
         stochastic=chains > 1,
         seed=seed,
-        **prior_arguments(estimator, None if prior is None else np.asarray(prior)[None]),
+        **prior_arguments(estimator, None if prior is None else prior[None]),
     )
     if not est.in_view[0]:
         raise Monose3Error(
@@ -117,17 +142,6 @@ def estimate_pose(
             "and that the joints and intrinsics belong to this image"
         )
     return PoseResult(est.poses[0], float(est.spread_mm[0]), float(est.spread_deg[0]), chains, est)
-
-
-def check_prior(estimator: PoseEstimator, prior: np.ndarray, joints: np.ndarray, K: np.ndarray, hw: tuple) -> None:
-    """Refuse a prior that does not show the robot: usually the inverse pose or millimetres."""
-    points = estimator.robot.keypoints(np.asarray(joints)[None], np.asarray(prior)[None])[0]
-    centre = points.mean(0)
-    u, v = (np.asarray(K) @ centre)[:2] / centre[2] if centre[2] > 0 else (-1.0, -1.0)
-    if not (0 <= u < hw[1] and 0 <= v < hw[0]):
-        raise Monose3Error(
-            "the prior pose puts the robot outside the image; give camera_from_base (not its inverse), in metres"
-        )
 
 
 def prior_arguments(estimator: PoseEstimator, priors: np.ndarray | None) -> dict:
@@ -161,63 +175,45 @@ def overlay_image(
 
 
 def write_pose_files(result: PoseResult, out: Path) -> tuple[Path, Path]:
-    out.mkdir(parents=True, exist_ok=True)
+    """``pose.json`` (strict JSON: no NaN) and ``pose.yaml`` in ``out``, each written atomically."""
     data = result.to_dict()
     json_path, yaml_path = out / "pose.json", out / "pose.yaml"
-    json_path.write_text(json.dumps(data, indent=2))
-    yaml_path.write_text(yaml.safe_dump(data, sort_keys=False))
+    atomic.write_text(json_path, json.dumps(data, indent=2, allow_nan=False))
+    atomic.write_text(yaml_path, yaml.safe_dump(data, sort_keys=False))
     return json_path, yaml_path
 
 
 def format_pose(result: PoseResult) -> str:
     fmt = lambda m: "\n".join("  [" + ", ".join(f"{v: .6f}" for v in row) + "]" for row in m)  # noqa: E731
-    rel = "reliable" if result.reliable else "UNRELIABLE (chains disagree)"
-    spread = f"chains spread {result.spread_mm:.1f} mm / {result.spread_deg:.1f} deg"
+    if result.reliable is None:
+        how = "a single chain has no spread, so no confidence (use --chains 2 or more for one)"
+    else:
+        rel = "reliable" if result.reliable else "UNRELIABLE (chains disagree)"
+        how = f"chains spread {result.spread_mm:.1f} mm / {result.spread_deg:.1f} deg, {rel}"
     return (
         f"camera_from_base (m):\n{fmt(result.camera_from_base)}\n"
         f"base_from_camera (m):\n{fmt(result.base_from_camera)}\n"
-        f"confidence {result.confidence:.2f}: {spread}, {rel}"
-    )
-
-
-def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--image", required=True, help="RGB image (PNG/JPEG)")
-    p.add_argument("--joints", required=True, help="JSON/YAML: {name: radians} or a list in URDF order")
-    p.add_argument(
-        "--camera",
-        required=True,
-        help="JSON {fx, fy, cx, cy, width, height}, DREAM camera settings or ROS CameraInfo YAML",
-    )
-    p.add_argument("--checkpoint", help="model checkpoint (default: the bundled Panda model)")
-    p.add_argument("--robot", help="robot the checkpoint must be for (checked)")
-    p.add_argument("--out", default="monose3_out", help="folder for pose.json, pose.yaml and overlay.png")
-    p.add_argument("--chains", type=int, default=4, help="stochastic reverse chains for the uncertainty (1 = off)")
-    p.add_argument("--sampler", choices=["revdiff", "directreg"], default="revdiff")
-    p.add_argument(
-        "--prior",
-        help="approximate camera-from-base to refine (pose.json/calibration.json written by monose3, or a 4x4 list)",
+        f"{result.confidence_text}: {how}"
     )
 
 
 def run_estimate(args: argparse.Namespace) -> int:
-    image = load_image(args.image)
-    camera: CameraIntrinsics = load_camera(args.camera)
-    check_image_camera(image, camera)
-    prior = load_pose(args.prior) if args.prior else None
+    from monose3.commands import check_estimate
+
+    inputs = getattr(args, "_checked", None) or check_estimate(args)  # all of it before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot)
     try:
-        joints = load_joints(args.joints, estimator.robot)
+        joints = inputs.joints if inputs.joints is not None else validation.check_joints(args.joints, estimator.robot)
         result = estimate_pose(
-            estimator, image, joints, camera.K, chains=max(1, args.chains), sampler=args.sampler, prior=prior
+            estimator, inputs.image, joints, inputs.K, chains=inputs.chains, sampler=args.sampler, prior=inputs.prior
+        )
+        overlay = overlay_image(
+            inputs.image, inputs.K, joints, result.camera_from_base, estimator.robot, text=result.confidence_text
         )
     finally:
         estimator.close()
-    out = Path(args.out)
-    json_path, yaml_path = write_pose_files(result, out)
-    overlay = overlay_image(
-        image, camera.K, joints, result.camera_from_base, estimator.robot, text=f"confidence {result.confidence:.2f}"
-    )
-    png = save_image(out / "overlay.png", overlay)
+    json_path, yaml_path = write_pose_files(result, inputs.out)
+    png = save_image(inputs.out / "overlay.png", overlay)
     print(format_pose(result))
     print(f"wrote {json_path}, {yaml_path}, {png}")
     return 0

@@ -43,8 +43,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import re
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -55,11 +53,26 @@ import cv2
 import numpy as np
 import yaml
 
+from monose3 import atomic
 from monose3.api import UNRELIABLE_MM
 from monose3.errors import Monose3Error
-from monose3.inputs import CameraIntrinsics, load_camera, load_image, load_joints
+from monose3.frames import (  # noqa: F401 - re-exported: the frame readers used to live here
+    CAMERA_FILES,
+    IMAGE_SUFFIXES,
+    JOINTS_SUFFIXES,
+    ImageFrame,
+    _image_stem,
+    _joints_stem,
+    _natural_key,
+    format_skipped,
+    is_plain_folder,
+    load_frames,
+    load_images,
+    load_plain_frames,
+    skipped_annotations,
+)
 from monose3.robot import RobotModel
-from monose3.robot.renderer import RenderJob
+from monose3.robot.jobs import RenderJob
 from monose3.se3_average import (
     pose_residuals,
     robust_consensus,
@@ -70,9 +83,6 @@ from monose3.viz import draw_overlay, image_grid, save_image
 
 log = logging.getLogger("monose3")
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-JOINTS_SUFFIXES = (".joints.json", ".joints.yaml", ".joints.yml")
-CAMERA_FILES = ("camera.json", "camera.yaml", "camera.yml")
 # Consensus rejection: median + K * sigma_MAD of the residuals, but never tighter than the floors.
 CONSENSUS_K = 3.0
 MIN_THRESHOLD_MM = 10.0
@@ -85,128 +95,6 @@ PRINT_ALL_FRAMES = 40
 REASON_OUT_OF_VIEW = "out of view"
 REASON_UNRELIABLE = "unreliable chains"
 REASON_CONSENSUS = "far from consensus"
-
-
-# ---- frames ----------------------------------------------------------------------------------
-
-
-@dataclass
-class ImageFrame:
-    """One user frame: an image (a file or an array already in memory, e.g. a video frame),
-    its joints and intrinsics. ``pose`` / ``keypoints_3d`` are ground truth when known
-    (DREAM frames carry them under the same names)."""
-
-    name: str
-    K: np.ndarray
-    image_size: tuple[int, int]
-    joints: np.ndarray
-    image_path: Path | None = None
-    image: np.ndarray | None = None
-    pose: np.ndarray | None = None
-    keypoints_3d: np.ndarray | None = None
-
-    def load_image(self) -> np.ndarray:
-        img = self.image if self.image is not None else load_image(self.image_path)
-        h, w = img.shape[:2]
-        if (w, h) != tuple(self.image_size):
-            where = self.image_path.name if self.image_path is not None else f"frame {self.name}"
-            raise Monose3Error(
-                f"{where} is {w}x{h} but the camera intrinsics are for {self.image_size[0]}x{self.image_size[1]}; "
-                "give intrinsics calibrated at the images' resolution"
-            )
-        return img
-
-
-def _natural_key(name: str) -> list:
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
-
-
-def _image_stem(name: str) -> str | None:
-    low = name.lower()
-    for suffix in IMAGE_SUFFIXES:
-        if low.endswith(suffix):
-            return name[: -len(suffix)]
-    return None
-
-
-def _joints_stem(name: str) -> str | None:
-    low = name.lower()
-    for suffix in JOINTS_SUFFIXES:
-        if low.endswith(suffix):
-            return name[: -len(suffix)]
-    return None
-
-
-def is_plain_folder(folder: Path) -> bool:
-    """True when ``folder`` uses the plain layout (a camera file or ``*.joints.json`` files)."""
-    names = [e.name for e in os.scandir(folder) if e.is_file()]
-    return any(n in CAMERA_FILES for n in names) or any(_joints_stem(n) is not None for n in names)
-
-
-def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[ImageFrame]:
-    """The frames of a plain folder (layout in the module docstring); joints are read and
-    checked up front so a bad file stops the run before any estimation."""
-    folder = Path(folder)
-    names = sorted((e.name for e in os.scandir(folder) if e.is_file()), key=_natural_key)
-    camera_file = next((folder / n for n in CAMERA_FILES if n in names), None)
-    images = [(n, _image_stem(n)) for n in names if _image_stem(n) is not None]
-    joints_files = {_joints_stem(n): n for n in names if _joints_stem(n) is not None}
-    if not images:
-        raise Monose3Error(
-            f"no images (.png/.jpg) in {folder}; put NNNN.png + NNNN.joints.json per frame and one camera.json there"
-        )
-    if camera_file is None:
-        raise Monose3Error(
-            f"no camera.json in {folder}; add the intrinsics as camera.json {{fx, fy, cx, cy, width, height}}"
-        )
-    camera: CameraIntrinsics = load_camera(camera_file)
-    frames = []
-    for image_name, stem in images:
-        if stem not in joints_files:
-            raise Monose3Error(
-                f"no joints file for image {image_name} in {folder}; add {stem}.joints.json with "
-                "{joint name: radians} (or remove the image)"
-            )
-        joints = load_joints(folder / joints_files[stem], robot)
-        frames.append(ImageFrame(stem, camera.K, camera.size, joints, image_path=folder / image_name))
-    orphans = sorted(set(joints_files) - {stem for _, stem in images})
-    if orphans:
-        log.warning("%d joints file(s) without an image in %s ignored (e.g. %s)", len(orphans), folder, orphans[0])
-    return frames
-
-
-def load_frames(folder: str | Path, robot: RobotModel) -> Sequence:
-    """The frames of ``folder``: a plain folder (see the module docstring) or a DREAM /
-    RoboKeyGen folder (frames then carry ground truth: ``pose`` and ``keypoints_3d``)."""
-    folder = Path(folder)
-    if not folder.exists():
-        raise Monose3Error(f"frames folder not found: {folder}; check the path")
-    if not folder.is_dir():
-        raise Monose3Error(f"{folder} is not a folder; give the folder that holds the frames")
-    if not any(True for _ in os.scandir(folder)):
-        raise Monose3Error(
-            f"frames folder {folder} is empty; put NNNN.png + NNNN.joints.json per frame and camera.json there "
-            "(or point to a DREAM folder)"
-        )
-    if is_plain_folder(folder):
-        return load_plain_frames(folder, robot)
-    names = [e.name for e in os.scandir(folder) if e.is_file()]
-    has_dream_json = any(n.endswith(".json") and not n.startswith("_") for n in names)
-    has_subdirs = any(e.is_dir() for e in os.scandir(folder))
-    if not has_dream_json and not has_subdirs:
-        if any(_image_stem(n) for n in names):
-            first = next(n for n in sorted(names, key=_natural_key) if _image_stem(n))
-            raise Monose3Error(
-                f"no joints file for image {first} in {folder}; add {_image_stem(first)}.joints.json with "
-                "{joint name: radians} per image and one camera.json"
-            )
-        raise Monose3Error(
-            f"no frames in {folder}; expected NNNN.png + NNNN.joints.json per frame and camera.json, "
-            "or a DREAM folder (NNNNNN.json + NNNNNN.rgb.jpg)"
-        )
-    from monose3.dream import open_dataset
-
-    return open_dataset(folder, robot)
 
 
 def _has_ground_truth(frames: Sequence) -> bool:
@@ -312,6 +200,7 @@ class CalibrationResult:
     ground_truth: dict | None = None
     seconds: float = 0.0
     meta: dict = field(default_factory=dict)
+    skipped: list[dict] = field(default_factory=list)  # {"frame", "reason"}: unreadable image or annotation
 
     @property
     def base_from_camera(self) -> np.ndarray:
@@ -355,6 +244,7 @@ class CalibrationResult:
             "base_from_camera_xyz_quat_xyzw": _xyz_quat(self.base_from_camera),
             "frames_total": len(self.frames),
             "frames_used": len(self.used),
+            "frames_skipped": len(self.skipped),
             "rejected": self.rejected,
             "chains": self.chains,
             "consensus_threshold_mm": _num(self.threshold_mm),
@@ -366,7 +256,7 @@ class CalibrationResult:
         }
 
     def to_dict(self) -> dict:
-        return {**self.summary_dict(), "frames": [f.to_dict() for f in self.frames]}
+        return {**self.summary_dict(), "frames": [f.to_dict() for f in self.frames], "skipped": self.skipped}
 
 
 def _xyz_quat(pose: np.ndarray) -> list[float]:
@@ -394,7 +284,8 @@ def calibrate(
 
     ``frames``: objects with ``name``, ``K``, ``joints`` and ``load_image()`` (DREAM frames or
     :class:`ImageFrame`); with ``pose`` and ``keypoints_3d`` on every frame the error of the
-    fused pose against ground truth is filled in. Raises Monose3Error if no frame survives.
+    fused pose against ground truth is filled in. Frames whose image cannot be read are
+    skipped and listed in ``result.skipped``. Raises Monose3Error if no frame survives.
     """
     if len(frames) == 0:
         raise Monose3Error("no frames to calibrate from; give a folder with at least one frame")
@@ -403,6 +294,8 @@ def calibrate(
     start = time.perf_counter()
     robot: RobotModel = estimator.robot
     results: list[FrameResult] = []
+    skipped = skipped_annotations(frames)
+    usable: list = []
     batches = [range(i, min(i + batch_size, len(frames))) for i in range(0, len(frames), batch_size)]
     bar = None
     if progress:
@@ -410,8 +303,12 @@ def calibrate(
 
         bar = tqdm(total=len(frames), desc="calibrate", unit="frame")
     for b, idx in enumerate(batches):
-        batch = [frames[i] for i in idx]
-        images = [f.load_image() for f in batch]
+        batch, images = load_images([frames[i] for i in idx], skipped)
+        if bar is not None:
+            bar.update(len(idx) - len(batch))
+        if not batch:
+            continue
+        usable.extend(batch)
         est = estimator.estimate(
             images,
             np.stack([np.asarray(f.K, np.float64) for f in batch]),
@@ -434,6 +331,11 @@ def calibrate(
             bar.update(len(batch))
     if bar is not None:
         bar.close()
+    if not results:
+        first = skipped[0] if skipped else {"frame": "-", "reason": "-"}
+        raise Monose3Error(
+            f"no usable frame: all {len(skipped)} were skipped (first: {first['frame']}: {first['reason']})"
+        )
 
     for r in results:
         if not r.in_view or not np.all(np.isfinite(r.camera_from_base)):
@@ -464,8 +366,8 @@ def calibrate(
         r.residual_mm, r.residual_deg = float(mm), float(deg)
 
     gt = None
-    if _has_ground_truth(frames):
-        gt = _ground_truth_report(robot, frames, results, fused)
+    if _has_ground_truth(usable):
+        gt = _ground_truth_report(robot, usable, results, fused)
     return CalibrationResult(
         camera_from_base=fused,
         frames=results,
@@ -474,6 +376,7 @@ def calibrate(
         threshold_deg=consensus.threshold_deg,
         ground_truth=gt,
         seconds=time.perf_counter() - start,
+        skipped=skipped,
     )
 
 
@@ -527,7 +430,9 @@ def format_report(result: CalibrationResult, max_frames: int = PRINT_ALL_FRAMES)
             lines.append(f"  ({len(result.frames) - len(shown)} used frames not listed; see calibration.json)")
     s = result.spread
     rejected = ", ".join(f"{n} {why}" for why, n in result.rejected.items()) or "none"
+    skipped_line = format_skipped("frames", result.skipped)
     lines += [
+        *([skipped_line] if skipped_line else []),
         f"frames: {len(result.used)} of {len(result.frames)} used; rejected: {rejected}",
         f"consensus thresholds: {result.threshold_mm:.1f} mm / {result.threshold_deg:.2f} deg",
         f"spread of the used frames to the fused pose: median {s['median_mm']:.1f} mm / {s['median_deg']:.2f} deg, "
@@ -558,20 +463,22 @@ def _mm(v: float | None) -> str:
 def write_calibration_files(result: CalibrationResult, out: str | Path) -> tuple[Path, Path]:
     """``calibration.json`` (everything, per-frame residuals included) and ``calibration.yaml`` (the summary)."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     json_path, yaml_path = out / "calibration.json", out / "calibration.yaml"
-    json_path.write_text(json.dumps(result.to_dict(), indent=2))
-    yaml_path.write_text(yaml.safe_dump(result.summary_dict(), sort_keys=False, default_flow_style=None))
+    atomic.write_text(json_path, json.dumps(result.to_dict(), indent=2, allow_nan=False))
+    atomic.write_text(yaml_path, yaml.safe_dump(result.summary_dict(), sort_keys=False, default_flow_style=None))
     return json_path, yaml_path
 
 
 def overlay_grid(estimator, frames: Sequence, result: CalibrationResult, count: int = 6, cols: int = 3) -> np.ndarray:
-    """The robot at the fused pose on ``count`` frames spread over the set, with each frame's residual."""
+    """The robot at the fused pose on ``count`` frames spread over the set, with each frame's
+    residual (skipped frames left out)."""
+    by_name = {r.name: r for r in result.frames}
+    frames = [f for f in frames if str(f.name) in by_name]
     n = len(frames)
     picks = sorted({int(round(i)) for i in np.linspace(0, n - 1, min(count, n))})
     images, Ks, joints, texts, gts = [], [], [], [], []
     for i in picks:
-        f, r = frames[i], result.frames[i]
+        f, r = frames[i], by_name[str(frames[i].name)]
         images.append(f.load_image())
         Ks.append(f.K)
         joints.append(f.joints)
@@ -587,66 +494,34 @@ def overlay_grid(estimator, frames: Sequence, result: CalibrationResult, count: 
 # ---- command line ------------------------------------------------------------------------------
 
 
-def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--frames",
-        required=True,
-        help="folder of NNNN.png|jpg + NNNN.joints.json + camera.json, or a DREAM folder (then the error vs ground "
-        "truth is reported)",
-    )
-    p.add_argument("--checkpoint", help="model checkpoint (default: the bundled Panda model)")
-    p.add_argument("--robot", help="robot the checkpoint must be for (checked)")
-    p.add_argument("--out", default="monose3_calibration", help="folder for calibration.json/.yaml and the overlay")
-    p.add_argument(
-        "--chains",
-        type=int,
-        default=1,
-        help="stochastic chains per frame; >1 also rejects frames whose chains disagree",
-    )
-    p.add_argument("--batch-size", type=int, default=4, help="frames estimated together")
-    p.add_argument("--limit", type=int, help="use only the first N frames")
-    p.add_argument("--device", default="auto", help="cpu, cuda or auto")
-    p.add_argument(
-        "--consensus-k",
-        type=float,
-        default=CONSENSUS_K,
-        help="reject frames beyond median + k * sigma_MAD of the residuals to the first robust fusion",
-    )
-    p.add_argument("--overlay-frames", type=int, default=6, help="frames in the overlay grid (0: no overlay)")
-
-
 def run_calibrate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
+    from monose3.commands import check_calibrate
 
-    if args.limit is not None and args.limit < 1:
-        raise Monose3Error(f"--limit must be at least 1, got {args.limit}")
-    if not Path(args.frames).is_dir():
-        raise Monose3Error(f"frames folder not found: {args.frames}; give the folder that holds the frames")
+    checked = getattr(args, "_checked", None) or check_calibrate(args)  # inputs read before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
     try:
-        frames = load_frames(args.frames, estimator.robot)
-        if args.limit is not None:
-            frames = frames[: args.limit]
+        frames = checked.frames
+        if frames is None:
+            frames = load_frames(args.frames, estimator.robot)
+            frames = frames[: args.limit] if args.limit is not None else frames
         print(f"calibrating from {len(frames)} frames of {args.frames}")
         result = calibrate(
             estimator,
             frames,
-            chains=max(1, args.chains),
-            batch_size=max(1, args.batch_size),
+            chains=checked.chains,
+            batch_size=args.batch_size,
             consensus_k=args.consensus_k,
             progress=True,
         )
-        out = Path(args.out)
-        json_path, yaml_path = write_calibration_files(result, out)
-        written = [json_path, yaml_path]
-        if args.overlay_frames > 0:
-            written.append(
-                save_image(
-                    out / "calibration_overlay.png", overlay_grid(estimator, frames, result, args.overlay_frames)
-                )
-            )
+        grid = overlay_grid(estimator, frames, result, args.overlay_frames) if args.overlay_frames > 0 else None
     finally:
         estimator.close()
+    out = checked.out
+    json_path, yaml_path = write_calibration_files(result, out)
+    written = [json_path, yaml_path]
+    if grid is not None:
+        written.append(save_image(out / "calibration_overlay.png", grid))
     print(format_report(result))
     print("wrote " + ", ".join(str(p) for p in written))
     return 0

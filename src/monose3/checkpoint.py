@@ -12,8 +12,7 @@ import torch
 from monose3.config import Config
 from monose3.errors import Monose3Error
 from monose3.network import Denoiser
-
-FORMAT = "monose3-checkpoint-v1"
+from monose3.validation import CHECKPOINT_FORMAT as FORMAT
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
@@ -33,6 +32,8 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     path = Path(path)
+    if path.is_dir():
+        raise Monose3Error(f"checkpoint {path} is a folder; give the checkpoint file (.pt) inside it")
     if not path.is_file():
         raise Monose3Error(f"checkpoint not found: {path} (train one with `monose3 train` or omit --checkpoint)")
     try:

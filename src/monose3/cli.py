@@ -1,5 +1,10 @@
-"""The ``monose3`` command. Each subcommand lives in its own module, which provides
-``add_arguments(parser)`` and ``run(args) -> int``; user errors print on one line."""
+"""The ``monose3`` command.
+
+The options of every subcommand and the checks of its inputs live in :mod:`monose3.commands`,
+which imports neither torch nor pybullet: ``--help``, ``--version`` and a bad input answer
+before the implementation module (``run_<name>(args)`` in the module named in
+``commands.COMMANDS``) is imported. User errors print on one line (exit code 2).
+"""
 
 from __future__ import annotations
 
@@ -7,37 +12,44 @@ import argparse
 import importlib
 import sys
 
+from monose3 import __version__
+from monose3.commands import COMMANDS
 from monose3.errors import run_reporting_errors
 
-COMMANDS = {
-    "demo": ("monose3.demo", "estimate the pose on the bundled sample scene and show the error"),
-    "estimate": ("monose3.api", "estimate camera-from-base from one image, joints and intrinsics"),
-    "calibrate": ("monose3.calibrate", "fuse estimates over many frames from a static camera"),
-    "track": ("monose3.track", "track the pose over a sequence of frames or a video"),
-    "generate": ("monose3.generate", "generate domain-randomised synthetic data in DREAM format"),
-    "train": ("monose3.train", "train the denoising network on DREAM folders"),
-    "evaluate": ("monose3.evaluate", "evaluate a checkpoint on DREAM / RoboKeyGen data (ADD, AUC)"),
-}
+DESCRIPTION = (
+    "monose3 estimates the pose of a robot's base in the camera frame from one RGB image, the robot's "
+    "joint angles and the camera intrinsics (MonoSE(3)-Diffusion), and calibrates, tracks, trains and "
+    "evaluates with the same model."
+)
+EPILOG = "Run `monose3 COMMAND --help` for the options of a command; `monose3 demo` tries the bundled sample."
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The parser; only ``command``'s module is imported (torch makes imports slow)."""
-    parser = argparse.ArgumentParser(prog="monose3", description=__doc__.split("\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    """The parser with every subcommand and option (cheap: nothing heavy is imported)."""
+    from monose3 import commands
+
+    parser = argparse.ArgumentParser(prog="monose3", description=DESCRIPTION, epilog=EPILOG)
+    parser.add_argument("--version", action="version", version=f"monose3 {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (module, help_text) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        if name == command:
-            mod = importlib.import_module(module)
-            getattr(mod, f"add_{name}_arguments")(p)
-            p.set_defaults(_run=getattr(mod, f"run_{name}"))
+    for name, (_, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text[0].upper() + help_text[1:] + ".")
+        getattr(commands, f"add_{name}_arguments")(p)
     return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    from monose3 import commands
+
+    checked = getattr(commands, f"check_{args.command}")(args)  # before torch / pybullet are imported
+    args._checked = checked
+    module = importlib.import_module(COMMANDS[args.command][0])
+    return getattr(module, f"run_{args.command}")(args)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    command = next((a for a in argv if not a.startswith("-")), None)
-    args = build_parser(command).parse_args(argv)
-    return run_reporting_errors(lambda: args._run(args), f"monose3 {args.command}")
+    args = build_parser().parse_args(argv)
+    return run_reporting_errors(lambda: _run(args), f"monose3 {args.command}")
 
 
 if __name__ == "__main__":

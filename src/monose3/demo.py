@@ -28,29 +28,25 @@ def pose_errors(robot, joints: np.ndarray, pred: np.ndarray, truth: np.ndarray) 
     }
 
 
-def add_demo_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="monose3_demo", help="folder for pose.json, pose.yaml and overlay.png")
-    p.add_argument("--checkpoint", help="model checkpoint (default: the bundled Panda model)")
-    p.add_argument("--chains", type=int, default=4, help="stochastic reverse chains for the uncertainty")
-
-
 def run_demo(args: argparse.Namespace) -> int:
+    from monose3.commands import check_demo
+
+    checked = getattr(args, "_checked", None) or check_demo(args)
     image = load_image(SAMPLE / "image.jpg")
     camera = load_camera(SAMPLE / "camera.json")
     truth = np.asarray(json.loads((SAMPLE / "ground_truth.json").read_text())["camera_from_base"])
-    estimator = load_estimator(args.checkpoint)
+    estimator = load_estimator(args.checkpoint, robot="panda")
     try:
         joints = load_joints(SAMPLE / "joints.json", estimator.robot)
-        result = estimate_pose(estimator, image, joints, camera.K, chains=args.chains)
+        result = estimate_pose(estimator, image, joints, camera.K, chains=checked.chains)
     finally:
         estimator.close()
-    out = Path(args.out)
-    write_pose_files(result, out)
+    out = Path(checked.out)
     err = pose_errors(estimator.robot, joints, result.camera_from_base, truth)
-    text = f"ADD {err['add_mm']:.0f} mm, confidence {result.confidence:.2f}"
-    png = save_image(
-        out / "overlay.png", overlay_image(image, camera.K, joints, result.camera_from_base, estimator.robot, text=text)
-    )
+    text = f"ADD {err['add_mm']:.0f} mm, {result.confidence_text}"
+    overlay = overlay_image(image, camera.K, joints, result.camera_from_base, estimator.robot, text=text)
+    write_pose_files(result, out)
+    png = save_image(out / "overlay.png", overlay)
     print(f"sample scene: {SAMPLE.name} ({camera.width}x{camera.height}), robot {estimator.robot.name}")
     print(format_pose(result))
     print(

@@ -19,6 +19,7 @@ from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.se3 import euler_xyz_to_matrix, make_pose
 from monose3.se3_average import rotation_angle
+from monose3.validation import check_batch
 from monose3.views import crop_batch, crop_geometry, image_to_tensor
 
 # RoboPose's fixed initial orientation (camera-from-reference-point): the robot seen from the front.
@@ -163,6 +164,7 @@ class PoseEstimator:
         steps, the paper) or 'directreg' (K + M direct steps, the baseline). ``stochastic``
         adds DDIM's noise term and perturbs the initial poses (several chains -> uncertainty).
         ``init_poses`` ``[B, 4, 4]`` replace RoboPose's initialisation (tracking)."""
+        images, Ks, joints = check_batch(images, Ks, joints, self.robot)  # Monose3Error, not a crash in roi_align
         inf = self.config.inference
         ddim_steps = inf.ddim_steps if ddim_steps is None else ddim_steps
         direct_steps = inf.direct_steps if direct_steps is None else direct_steps

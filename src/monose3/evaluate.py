@@ -16,9 +16,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from monose3 import atomic
+from monose3.errors import Monose3Error
 from monose3.estimator import PoseEstimator
+from monose3.frames import format_skipped, load_images, skipped_annotations
 from monose3.metrics import add_per_frame, format_table, summarize
-from monose3.robot.renderer import RenderJob
+from monose3.robot.jobs import RenderJob
 from monose3.viz import denoising_strip, plot_add_distribution
 
 
@@ -28,10 +31,13 @@ class DatasetResult:
     adds: list[float] = field(default_factory=list)
     frames: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    skipped: list[dict] = field(default_factory=list)  # {"frame", "reason"}: unreadable image or annotation
 
     def summary(self) -> dict:
         fps = len(self.adds) / self.seconds if self.seconds > 0 else None
-        return summarize(np.asarray(self.adds), fps=fps)
+        out = summarize(np.asarray(self.adds), fps=fps)
+        out["skipped"] = len(self.skipped)
+        return out
 
 
 def _batches(n: int, size: int, limit: int | None) -> list[range]:
@@ -53,17 +59,22 @@ def evaluate_dataset(
     tracking: bool = False,
     progress: bool = True,
 ) -> DatasetResult:
-    """ADD of every frame; failures (estimate out of view) count as infinite ADD.
+    """ADD of every frame; an estimate out of view counts as infinite ADD. Frames whose image
+    cannot be read are skipped and listed in ``result.skipped`` (with those the reader left
+    out for bad annotations); Monose3Error when no frame is usable.
 
     ``tracking``: frames are a sequence; the first gets the full reverse process, each next
     one a single step from the previous estimate (batch size 1).
     """
-    result = DatasetResult(name)
+    result = DatasetResult(name, skipped=skipped_annotations(frames))
     previous = None
     batches = _batches(len(frames), 1 if tracking else batch_size, limit)
     for idx in tqdm(batches, desc=f"evaluate {name}", unit="batch", disable=not progress):
-        batch = [frames[i] for i in idx]
-        images = [f.load_image() for f in batch]
+        pairs = [(i, frames[i]) for i in idx]
+        batch, images = load_images([f for _, f in pairs], result.skipped)
+        if not batch:
+            continue
+        idx = [i for i, f in pairs if any(f is b for b in batch)]
         Ks = np.stack([f.K for f in batch])
         joints = np.stack([f.joints for f in batch])
         tick = time.perf_counter()
@@ -99,6 +110,13 @@ def evaluate_dataset(
                     [h[j, 0] for h in est.history],
                     overlay_dir / f"{name}_{frame_label(batch[j])}.png",
                 )
+    if not result.adds:
+        raise Monose3Error(
+            f"no usable frame in {name}: all {len(result.skipped)} were skipped (first: {result.skipped[0]['frame']}: "
+            f"{result.skipped[0]['reason']})"
+            if result.skipped
+            else f"no frames to evaluate in {name}; give a DREAM or RoboKeyGen folder with frames"
+        )
     return result
 
 
@@ -114,35 +132,38 @@ def _denoising_overlay(estimator: PoseEstimator, image, K, joints, poses, path: 
     denoising_strip(image, masks, labels, path)
 
 
+def _strict(value):
+    """``value`` with every non-finite float replaced by None, so the JSON is strict."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _strict(x) for k, x in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(x) for x in value]
+    return value
+
+
 def write_json(results: Sequence[DatasetResult], path: Path, meta: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = {"meta": meta, "datasets": {r.name: {"summary": r.summary(), "frames": r.frames} for r in results}}
-    path.write_text(json.dumps(data, indent=1, default=float))
-
-
-def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", nargs="+", required=True, help="DREAM folders or RoboKeyGen sequences")
-    p.add_argument("--checkpoint", help="model checkpoint (default: the bundled Panda model)")
-    p.add_argument("--sampler", choices=["revdiff", "directreg", "tracking"], default="revdiff")
-    p.add_argument("--steps", type=int, nargs=2, metavar=("K", "M"), help="DDIM steps and direct steps (default 5 5)")
-    p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--limit", type=int, help="evaluate only the first N frames of each dataset")
-    p.add_argument("--json", help="write per-frame ADD and poses here")
-    p.add_argument("--plot", help="write the ADD distribution plot (PNG) here")
-    p.add_argument("--overlays", help="folder for denoising-step overlays of --overlay-frames")
-    p.add_argument("--overlay-frames", type=int, nargs="*", default=[0], help="frame indices to draw (default 0)")
+    """Summary, per-frame results and skipped frames of every dataset, written atomically."""
+    data = {
+        "meta": meta,
+        "datasets": {r.name: {"summary": r.summary(), "frames": r.frames, "skipped": r.skipped} for r in results},
+    }
+    atomic.write_text(path, json.dumps(_strict(data), indent=1, default=float, allow_nan=False))
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
+    from monose3.commands import check_evaluate
     from monose3.dream import open_dataset
 
+    checked = getattr(args, "_checked", None) or check_evaluate(args)
     estimator = load_estimator(args.checkpoint)
     k, m = args.steps if args.steps else (None, None)
     results = []
     try:
-        for d in args.data:
-            frames = open_dataset(d, estimator.robot)
+        for n, d in enumerate(args.data):
+            frames = checked.datasets[n] if checked.datasets is not None else open_dataset(d, estimator.robot)
             results.append(
                 evaluate_dataset(
                     estimator,
@@ -161,6 +182,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
     finally:
         estimator.close()
     print(format_table({r.name: r.summary() for r in results}))
+    for r in results:
+        line = format_skipped(r.name, r.skipped)
+        if line:
+            print(line)
     if args.json:
         write_json(
             results,

@@ -31,7 +31,7 @@ import numpy as np
 from monose3.dream import DreamDataset, write_camera_settings, write_frame
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel, RobotSpec, get_spec, spec_from_files
-from monose3.robot.renderer import Lighting, RenderJob, RobotRenderer
+from monose3.robot.jobs import RENDERERS, Lighting, RenderJob
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".webp")
 GENERATION_FILE = "_generation.json"
@@ -497,12 +497,11 @@ class _Job:
     backend: str
 
 
-RENDERERS = ("torch", "tiny", "egl")
-
-
 def make_renderer(model: RobotModel, backend: str):
     """monose3's own renderer ('torch'), or pybullet's TinyRenderer/EGL as an independent one."""
     if backend == "torch":
+        from monose3.robot.renderer import RobotRenderer
+
         return _TorchJobs(RobotRenderer(model))
     from monose3.render import Renderer
 
@@ -512,7 +511,7 @@ def make_renderer(model: RobotModel, backend: str):
 class _TorchJobs:
     """The batched renderer behind the one-job ``render`` / ``close`` interface of pybullet's."""
 
-    def __init__(self, renderer: RobotRenderer):
+    def __init__(self, renderer):
         self.renderer = renderer
 
     def render(self, job: RenderJob) -> tuple[np.ndarray, np.ndarray]:
@@ -786,33 +785,8 @@ def save_preview_grid(
 # ---- command line ---------------------------------------------------------------------------
 
 
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like 640x480, got {text!r}") from None
-    return w, h
-
-
-def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, type=Path, help="output folder (DREAM layout)")
-    parser.add_argument("--num", required=True, type=int, help="number of frames")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (same seed = same data) [0]")
-    parser.add_argument("--robot", default="panda", help="robot name: panda or kuka [panda]")
-    parser.add_argument("--urdf", type=Path, help="custom robot: URDF file (with --keypoints)")
-    parser.add_argument("--keypoints", type=Path, help='custom robot: {"keypoints": [{"name", "link", "offset"}]}')
-    parser.add_argument("--workers", type=int, default=None, help="processes [one per CPU core]; 0 = no subprocess")
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="train", help="scene randomisation [train]")
-    parser.add_argument("--backgrounds", type=Path, help="folder of images to use as some of the backgrounds")
-    parser.add_argument("--size", type=_parse_size, default=(640, 480), help="image size WxH [640x480]")
-    parser.add_argument("--resume", action="store_true", help="keep the frames already in --out, make the rest")
-    parser.add_argument("--preview", type=Path, help="also save a grid of the first 12 frames with keypoints here")
-    parser.add_argument(
-        "--renderer",
-        choices=RENDERERS,
-        default="torch",
-        help="torch: monose3's renderer [default]; tiny/egl: pybullet's (needs pybullet), for cross-renderer test sets",
-    )
+# The options live in the torch-free monose3.commands (fast --help and input errors).
+from monose3.commands import add_generate_arguments  # noqa: E402, F401
 
 
 def run_generate(args: argparse.Namespace) -> int:

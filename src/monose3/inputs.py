@@ -84,6 +84,8 @@ def _joints_from_obj(obj: Any, source: str) -> dict[str, Any] | list[Any]:
         return dict(obj)
     if isinstance(obj, (list, tuple, np.ndarray)):
         items = list(obj)
+        if len(items) == 1 and isinstance(items[0], (list, tuple, np.ndarray)):
+            items = list(items[0])  # the one row of a [1, n] array
         if items and all(isinstance(it, Mapping) for it in items):
             # DREAM sim_state style: [{"name": ..., "position": ...}, ...]
             out: dict[str, Any] = {}
@@ -236,6 +238,11 @@ def camera_from_obj(obj: Any, source: str = "camera") -> CameraIntrinsics:
             f"{source}: expected a mapping with fx, fy, cx, cy, width, height (or DREAM / ROS CameraInfo layout), "
             f"got {type(obj).__name__}"
         )
+    cam_data = obj.get("camera_data")
+    if isinstance(cam_data, Mapping) and isinstance(cam_data.get("intrinsics"), Mapping):  # a DREAM frame JSON
+        intr = cam_data["intrinsics"]
+        _require(intr, ("fx", "fy", "cx", "cy", "width", "height"), source, "a DREAM frame's camera_data.intrinsics")
+        return _make_camera(intr["fx"], intr["fy"], intr["cx"], intr["cy"], intr["width"], intr["height"], source)
     if "camera_settings" in obj:  # DREAM / NDDS _camera_settings.json
         settings = obj["camera_settings"]
         if not isinstance(settings, list) or not settings or not isinstance(settings[0], Mapping):
@@ -285,7 +292,35 @@ def load_camera(path: str | Path) -> CameraIntrinsics:
     """
     p = Path(path)
     obj = _read_structured(p, "camera")
-    return camera_from_obj(obj, str(p))
+    camera = camera_from_obj(obj, str(p))
+    if isinstance(obj, Mapping) and "camera_settings" in obj:
+        _refuse_nominal_settings(p, camera)
+    return camera
+
+
+def _refuse_nominal_settings(path: Path, camera: CameraIntrinsics) -> None:
+    """A DREAM folder whose frames carry their own intrinsics (``camera_data.intrinsics``, as
+    ``monose3 generate`` writes them) has only a nominal camera in ``_camera_settings.json``:
+    refuse it when the first frame's own intrinsics differ."""
+    frame = next((f for f in sorted(path.parent.glob("*.json")) if not f.name.startswith("_")), None)
+    if frame is None:
+        return
+    try:
+        own = json.loads(frame.read_text(encoding="utf-8")).get("camera_data", {}).get("intrinsics")
+    except (OSError, ValueError, AttributeError):
+        return
+    if not isinstance(own, Mapping):
+        return
+    given = (camera.fx, camera.fy, camera.cx, camera.cy)
+    try:
+        theirs = tuple(float(own[k]) for k in ("fx", "fy", "cx", "cy"))
+    except (KeyError, TypeError, ValueError):
+        return
+    if not np.allclose(given, theirs, rtol=1e-6, atol=1e-6):
+        raise Monose3Error(
+            f"{path} holds a nominal camera, but the frames of {path.parent} carry their own intrinsics "
+            f"(e.g. {frame.name}: fx={theirs[0]:g}); pass the frame's JSON as the camera instead"
+        )
 
 
 def scale_camera(camera: CameraIntrinsics, width: int, height: int) -> CameraIntrinsics:

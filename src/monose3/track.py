@@ -38,7 +38,6 @@ import argparse
 import csv
 import json
 import math
-import os
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -48,9 +47,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from monose3.calibrate import ImageFrame, _natural_key, draw_pose_overlays, load_frames
+from monose3.atomic import atomic_path, write_text
+from monose3.calibrate import ImageFrame, draw_pose_overlays, load_frames
 from monose3.errors import Monose3Error
-from monose3.inputs import load_camera, load_joints
+from monose3.frames import (  # noqa: F401 - the joint-file readers are torch-free, so they live there
+    IGNORED_CSV_COLUMNS,
+    NAME_CSV_COLUMNS,
+    format_skipped,
+    load_joints_csv,
+    load_joints_dir,
+    skipped_annotations,
+)
+from monose3.inputs import load_camera
+from monose3.metrics import FAILURE_MM
 from monose3.robot import RobotModel
 from monose3.se3_average import rotation_angle
 from monose3.viz import save_animation
@@ -60,8 +69,6 @@ MAX_STEP_MM = 50.0
 MAX_STEP_DEG = 10.0
 GIF_TILE_WIDTH = 320
 PRINT_ALL_FRAMES = 40
-IGNORED_CSV_COLUMNS = ("time", "timestamp", "stamp")
-NAME_CSV_COLUMNS = ("frame", "name")
 
 MODE_FULL, MODE_TRACK = "full", "track"
 
@@ -112,13 +119,17 @@ def track_sequence(
     max_step_deg: float = MAX_STEP_DEG,
     reinit_every: int | None = None,
     on_frame: Callable[[object, np.ndarray, TrackFrame], None] | None = None,
+    skipped: list[dict] | None = None,
 ) -> list[TrackFrame]:
     """Track the camera-from-base pose over ``frames_iter`` (objects with ``name``, ``K``,
     ``joints``, ``load_image()``; with ``keypoints_3d`` the ADD is filled in).
 
     ``on_frame(frame, image, result)`` is called after each frame (for streaming output and
-    overlays without keeping the images). Returns one :class:`TrackFrame` per frame.
+    overlays without keeping the images). Returns one :class:`TrackFrame` per usable frame; a
+    frame whose image cannot be read is skipped (tracking goes on from the last estimate) and
+    appended to ``skipped`` as ``{"frame", "reason"}``.
     """
+    skipped = [] if skipped is None else skipped
     if reinit_every is not None and reinit_every < 1:
         raise Monose3Error(f"reinit_every must be at least 1 (or None), got {reinit_every}")
     robot: RobotModel = estimator.robot
@@ -126,14 +137,18 @@ def track_sequence(
     previous: np.ndarray | None = None
     since_full = 0
     for index, frame in enumerate(frames_iter):
-        image = frame.load_image()
+        try:
+            image = frame.load_image()
+        except Monose3Error as err:
+            skipped.append({"frame": str(frame.name), "reason": str(err)})
+            continue
         K = np.asarray(frame.K, np.float64)[None]
         q = np.asarray(frame.joints, np.float64)[None]
         tick = time.perf_counter()
         step_mm = step_deg = None
         reason = None
         if previous is None:
-            reason = "first" if index == 0 else "lost"
+            reason = "first" if not out else "lost"
         elif reinit_every is not None and since_full >= reinit_every:
             reason = "periodic"
         else:
@@ -166,6 +181,10 @@ def track_sequence(
         out.append(result)
         if on_frame is not None:
             on_frame(frame, image, result)
+    if not out and skipped:
+        raise Monose3Error(
+            f"no usable frame: all {len(skipped)} were skipped (first: {skipped[0]['frame']}: {skipped[0]['reason']})"
+        )
     if not out:
         raise Monose3Error("no frames to track; give a folder or video with at least one frame")
     return out
@@ -225,66 +244,6 @@ def count_video_frames(path: str | Path) -> int:
     return n if n else sum(1 for _ in read_video(path))
 
 
-def load_joints_csv(path: str | Path, robot: RobotModel) -> tuple[list[str] | None, np.ndarray]:
-    """Frame names (from a ``frame``/``name`` column, else None) and joints ``[N, n]`` from a CSV
-    whose header names the joints (layout in the module docstring)."""
-    p = Path(path)
-    if not p.is_file():
-        raise Monose3Error(f"joints CSV not found: {p}; check the path")
-    with p.open(newline="", encoding="utf-8") as fh:
-        rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
-    if len(rows) < 2:
-        raise Monose3Error(f"{p} needs a header row of joint names and one row per frame; it has {len(rows)} row(s)")
-    header = [h.strip() for h in rows[0]]
-    lower = [h.lower() for h in header]
-    name_col = next((i for i, h in enumerate(lower) if h in NAME_CSV_COLUMNS), None)
-    joint_cols = [i for i, h in enumerate(lower) if i != name_col and h not in IGNORED_CSV_COLUMNS]
-    if all(_is_float(h) for h in header):
-        raise Monose3Error(
-            f"{p} has no header row; add a first row naming the joints (e.g. {robot.required_joints[0]})"
-        )
-    names, joints = [], []
-    for r, row in enumerate(rows[1:], start=2):
-        if len(row) != len(header):
-            raise Monose3Error(f"{p} row {r} has {len(row)} values but the header has {len(header)}; fix the row")
-        values = {}
-        for i in joint_cols:
-            cell = row[i].strip()
-            if not _is_float(cell):
-                raise Monose3Error(f"{p} row {r}: {header[i]} = {cell!r} is not a number (radians)")
-            values[header[i]] = float(cell)
-        try:
-            joints.append(load_joints(values, robot))
-        except Monose3Error as err:
-            raise Monose3Error(f"{p} row {r}: {err}") from None
-        names.append(row[name_col].strip() if name_col is not None else None)
-    return (names if name_col is not None else None), np.stack(joints)
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
-def load_joints_dir(folder: str | Path, robot: RobotModel) -> tuple[list[str], np.ndarray]:
-    """Per-frame joint files of a folder (JSON/YAML, natural name order): names and ``[N, n]``."""
-    d = Path(folder)
-    if not d.is_dir():
-        raise Monose3Error(f"joints folder not found: {d}; give a folder with one joints JSON per frame")
-    files = sorted(
-        (e.name for e in os.scandir(d) if e.is_file() and e.name.lower().endswith((".json", ".yaml", ".yml"))),
-        key=_natural_key,
-    )
-    files = [f for f in files if not f.startswith("camera.")]
-    if not files:
-        raise Monose3Error(f"no joints files (.json/.yaml) in {d}; put one {{name: radians}} file per video frame")
-    names = [f.split(".")[0] for f in files]
-    return names, np.stack([load_joints(d / f, robot) for f in files])
-
-
 def video_frames(
     video: str | Path, camera_file: str | Path, joints: np.ndarray, names: Sequence[str] | None = None
 ) -> Iterator[ImageFrame]:
@@ -309,51 +268,14 @@ def video_frames(
 # ---- command line ------------------------------------------------------------------------------
 
 
-def add_track_arguments(p: argparse.ArgumentParser) -> None:
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--frames", help="DREAM folder or folder of NNNN.png + NNNN.joints.json + camera.json")
-    src.add_argument("--video", help="video file (MP4, AVI, GIF...); needs --camera and --joints-csv or --joints")
-    jsrc = p.add_mutually_exclusive_group()
-    jsrc.add_argument("--joints-csv", help="with --video: CSV, header = joint names, one row per frame (radians)")
-    jsrc.add_argument("--joints", help="with --video: folder with one joints JSON per frame (name order)")
-    p.add_argument("--camera", help="with --video: intrinsics file (JSON {fx, fy, cx, cy, width, height}, ...)")
-    p.add_argument("--checkpoint", help="model checkpoint (default: the bundled Panda model)")
-    p.add_argument("--robot", help="robot the checkpoint must be for (checked)")
-    p.add_argument("--out", default="monose3_track", help="folder for poses.jsonl, poses.csv and track.gif")
-    p.add_argument("--limit", type=int, help="track only the first N frames of --frames")
-    p.add_argument("--reinit-every", type=int, help="run the full process every N frames as well")
-    p.add_argument("--max-step-mm", type=float, default=MAX_STEP_MM, help="re-initialise when one step moves more")
-    p.add_argument("--max-step-deg", type=float, default=MAX_STEP_DEG, help="re-initialise when one step rotates more")
-    p.add_argument("--gif-every", type=int, default=1, help="put every N-th frame in track.gif (0: no GIF)")
-    p.add_argument("--fps", type=float, default=10.0, help="frame rate of track.gif")
-    p.add_argument("--device", default="auto", help="cpu, cuda or auto")
-
-
-def _check_args(args: argparse.Namespace) -> None:
-    """Argument combinations, checked before the model is loaded."""
-    if args.limit is not None and args.limit < 1:
-        raise Monose3Error(f"--limit must be at least 1, got {args.limit}")
-    if args.gif_every < 0:
-        raise Monose3Error(f"--gif-every must be >= 0, got {args.gif_every}")
-    if args.frames is not None:
-        if args.joints_csv or args.joints or args.camera:
-            raise Monose3Error(
-                "--joints-csv/--joints/--camera go with --video; a --frames folder holds its own joints and camera"
-            )
-        return
-    if not Path(args.video).is_file():
-        raise Monose3Error(f"video not found: {args.video}; check the path")
-    if not args.camera:
-        raise Monose3Error("--video needs --camera FILE with the intrinsics {fx, fy, cx, cy, width, height}")
-    if not (args.joints_csv or args.joints):
-        raise Monose3Error("--video needs the joints of every frame: --joints-csv FILE or --joints DIR")
-
-
 def _frames_for(args: argparse.Namespace, robot: RobotModel) -> Iterable:
     if args.frames is not None:
         frames = load_frames(args.frames, robot)
         return frames[: args.limit] if args.limit is not None else frames
-    if args.joints_csv:
+    checked = getattr(args, "_checked", None)
+    if checked is not None and checked.video_joints is not None:
+        names, joints = checked.video_joints
+    elif args.joints_csv:
         names, joints = load_joints_csv(args.joints_csv, robot)
     else:
         names, joints = load_joints_dir(args.joints, robot)
@@ -386,7 +308,8 @@ def format_summary(results: Sequence[TrackFrame], max_frames: int = PRINT_ALL_FR
         if ok.size:
             lines.append(
                 f"ADD vs ground truth: mean {ok.mean():.1f} mm, median {np.median(ok):.1f} mm, "
-                f"failures {int((~np.isfinite(adds)).sum())}"
+                f"failures (ADD > {FAILURE_MM:g} mm or out of view) {int((~(adds <= FAILURE_MM)).sum())} "
+                f"of {len(adds)}, out of view {int((~np.isfinite(adds)).sum())}"
             )
         else:
             lines.append(f"ADD vs ground truth: every frame failed ({len(adds)})")
@@ -395,16 +318,27 @@ def format_summary(results: Sequence[TrackFrame], max_frames: int = PRINT_ALL_FR
 
 def run_track(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
+    from monose3.commands import check_track
 
-    _check_args(args)
+    checked = getattr(args, "_checked", None) or check_track(args)  # inputs checked before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
-    out = Path(args.out)
+    out = checked.out
     tiles: list[np.ndarray] = []
+    skipped: list[dict] = []
+    jsonl_path, csv_path = out / "poses.jsonl", out / "poses.csv"
     try:
-        frames = _frames_for(args, estimator.robot)  # inputs checked before any output is written
-        out.mkdir(parents=True, exist_ok=True)
-        jsonl_path, csv_path = out / "poses.jsonl", out / "poses.csv"
-        with jsonl_path.open("w") as jf, csv_path.open("w", newline="") as cf:
+        frames = checked.frames
+        if frames is None:
+            frames = _frames_for(args, estimator.robot)  # inputs checked before any output is written
+        skipped.extend(skipped_annotations(frames))
+        # Written to temporary files that replace poses.jsonl / poses.csv only when the run ends
+        # well: an interrupted or failed run leaves no partial outputs.
+        with (
+            atomic_path(jsonl_path) as jsonl_tmp,
+            atomic_path(csv_path) as csv_tmp,
+            jsonl_tmp.open("w") as jf,
+            csv_tmp.open("w", newline="") as cf,
+        ):
             writer = csv.writer(cf)
             writer.writerow(
                 ["index", "frame", "mode", "reason", "in_view", *(f"m{r}{c}" for r in range(4) for c in range(4))]
@@ -413,8 +347,7 @@ def run_track(args: argparse.Namespace) -> int:
 
             def on_frame(frame, image: np.ndarray, result: TrackFrame) -> None:
                 d = result.to_dict()
-                jf.write(json.dumps(d) + "\n")
-                jf.flush()
+                jf.write(json.dumps(d, allow_nan=False) + "\n")
                 writer.writerow(
                     [d["index"], d["frame"], d["mode"], d["reason"] or "", int(d["in_view"])]
                     + [f"{v:.9g}" for v in d["camera_from_base"]]
@@ -445,6 +378,7 @@ def run_track(args: argparse.Namespace) -> int:
                 max_step_deg=args.max_step_deg,
                 reinit_every=args.reinit_every,
                 on_frame=on_frame,
+                skipped=skipped,
             )
     finally:
         estimator.close()
@@ -454,6 +388,11 @@ def run_track(args: argparse.Namespace) -> int:
         h, w = tiles[0].shape[:2]
         tiles = [t if t.shape[:2] == (h, w) else cv2.resize(t, (w, h), interpolation=cv2.INTER_AREA) for t in tiles]
         written.append(save_animation(tiles, out / "track.gif", fps=args.fps))
+    if skipped:
+        written.append(write_text(out / "skipped.json", json.dumps({"skipped": skipped}, indent=1)))
     print(format_summary(results))
+    line = format_skipped("frames", skipped, where=str(out / "skipped.json"))
+    if line:
+        print(line)
     print("wrote " + ", ".join(str(p) for p in written))
     return 0

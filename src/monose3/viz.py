@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from monose3.atomic import atomic_path
 from monose3.errors import Monose3Error
 from monose3.metrics import auc as add_auc
 
@@ -60,6 +61,32 @@ def _draw_text(img: np.ndarray, text: str) -> None:
         y += th + base + 6
 
 
+def _text_scale(img: np.ndarray) -> tuple[float, int]:
+    scale = max(0.35, min(img.shape[0], img.shape[1]) / 480 * 0.5)
+    return scale, max(1, round(scale * 1.5))
+
+
+def _draw_legend(img: np.ndarray, entries: Sequence[tuple[str, Color, str]]) -> None:
+    """A key in the bottom-left corner: one row per ``(marker, colour, label)``, marker 'dot'
+    (a filled circle) or 'cross', on a dark box so it reads on any background."""
+    scale, thick = _text_scale(img)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    sizes = [cv2.getTextSize(label, font, scale, thick) for _, _, label in entries]
+    row = max(th + base for (_, th), base in sizes) + 4
+    swatch = row
+    width = max(tw for (tw, _), _ in sizes) + swatch + 10
+    top = img.shape[0] - row * len(entries) - 4
+    cv2.rectangle(img, (0, top), (width, img.shape[0]), (0, 0, 0), -1)
+    for i, ((marker, color, label), ((_, th), _)) in enumerate(zip(entries, sizes, strict=True)):
+        y = top + 2 + i * row
+        centre = (4 + swatch // 2, y + row // 2)
+        if marker == "cross":
+            cv2.drawMarker(img, centre, color, cv2.MARKER_CROSS, max(5, swatch - 4), thick, cv2.LINE_AA)
+        else:
+            cv2.circle(img, centre, max(2, swatch // 3), color, -1, cv2.LINE_AA)
+        cv2.putText(img, label, (8 + swatch, y + row // 2 + th // 2), font, scale, (255, 255, 255), thick, cv2.LINE_AA)
+
+
 def _points(uv: np.ndarray | None, what: str) -> np.ndarray:
     if uv is None:
         return np.zeros((0, 2))
@@ -77,11 +104,13 @@ def draw_overlay(
     gt_keypoints_uv: np.ndarray | None = None,
     text: str | None = None,
     gt_color: Color = GT_COLOR,
+    legend: bool = True,
 ) -> np.ndarray:
     """The robot mask's outline and a light translucent fill drawn over ``image``.
 
     Predicted keypoints are dots in ``color``, ground-truth keypoints crosses in ``gt_color``;
-    ``text`` is written in the top-left corner. Returns a new array; ``image`` is untouched.
+    ``text`` is written in the top-left corner and, with ``legend``, a key to the colours in
+    the bottom-left one. Returns a new array; ``image`` is untouched.
     """
     out = _as_rgb(image)
     lw = _line_width(out.shape)
@@ -106,6 +135,14 @@ def draw_overlay(
         cv2.circle(out, (round(u), round(v)), radius, tuple(int(c) for c in color), -1, cv2.LINE_AA)
     if text:
         _draw_text(out, text)
+    if legend:
+        entries = []
+        if mask is not None or keypoints_uv is not None:
+            entries.append(("dot", tuple(int(c) for c in color), "estimate: outline, keypoints"))
+        if gt_keypoints_uv is not None:
+            entries.append(("cross", tuple(int(c) for c in gt_color), "ground-truth keypoints"))
+        if entries:
+            _draw_legend(out, entries)
     return out
 
 
@@ -113,7 +150,7 @@ def draw_overlay(
 
 
 def save_image(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write an RGB image (PNG, JPEG, ... by extension), creating parent folders."""
+    """Write an RGB image (PNG, JPEG, ... by extension) atomically, creating parent folders."""
     p = Path(path)
     img = _as_rgb(rgb)
     p.parent.mkdir(parents=True, exist_ok=True)
@@ -124,7 +161,8 @@ def save_image(path: str | Path, rgb: np.ndarray) -> Path:
         ok = False
     if not ok:
         raise Monose3Error(f"cannot write an image with extension {p.suffix!r} ({p}); use .png or .jpg")
-    buf.tofile(p)
+    with atomic_path(p) as tmp:
+        buf.tofile(tmp)
     return p
 
 
@@ -146,18 +184,20 @@ def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: float = 
     p.parent.mkdir(parents=True, exist_ok=True)
     ext = p.suffix.lower()
     if ext == ".gif":
-        iio.imwrite(p, np.stack(imgs), extension=".gif", duration=1000.0 / fps, loop=0)
+        with atomic_path(p) as tmp:
+            iio.imwrite(tmp, np.stack(imgs), extension=".gif", duration=1000.0 / fps, loop=0)
         return p
     if ext == ".mp4":
         h, w = imgs[0].shape[:2]
-        writer = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-        if not writer.isOpened():
-            raise Monose3Error(f"this OpenCV build cannot write MP4 ({p}); save the animation as .gif instead")
-        try:
-            for f in imgs:
-                writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
-        finally:
-            writer.release()
+        with atomic_path(p) as tmp:
+            writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+            if not writer.isOpened():
+                raise Monose3Error(f"this OpenCV build cannot write MP4 ({p}); save the animation as .gif instead")
+            try:
+                for f in imgs:
+                    writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+            finally:
+                writer.release()
         return p
     raise Monose3Error(f"unsupported animation format {p.suffix!r} ({p}); use .gif or .mp4")
 
@@ -202,7 +242,7 @@ def denoising_strip(
         raise Monose3Error(f"denoising_strip got {len(masks_per_step)} masks but {len(labels)} labels; give one each")
     n = len(masks_per_step)
     tiles = [
-        draw_overlay(image, m, color=_step_color(i, n), text=str(lbl))
+        draw_overlay(image, m, color=_step_color(i, n), text=str(lbl), legend=False)
         for i, (m, lbl) in enumerate(zip(masks_per_step, labels, strict=True))
     ]
     strip = image_grid(tiles, cols=n, pad=4, background=255)
@@ -223,8 +263,8 @@ def new_figure(size: tuple[float, float] = (6.4, 4.4)) -> Figure:
 
 def save_figure(fig: Figure, path: str | Path, dpi: float | str = "figure") -> Path:
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, bbox_inches="tight", dpi=dpi)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, bbox_inches="tight", dpi=dpi, format=(p.suffix[1:] or "png").lower())
     return p
 
 

@@ -7,6 +7,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# What frames can be rendered with: monose3's renderer, or pybullet's TinyRenderer / EGL.
+RENDERERS = ("torch", "tiny", "egl")
+
 
 @dataclass(frozen=True)
 class Lighting:
