@@ -36,6 +36,9 @@ class NetworkConfig:
     render_size: tuple[int, int] = (320, 240)  # (w, h) of the render and of the crop
     input_size: tuple[int, int] = (640, 480)  # (w, h) every input image is brought to
     time_embedding_dim: int = 4  # C_emb
+    # "concat": the paper's ResNet over concat(render, crop, C_emb) (Sec. III-C). The others
+    # (see network.DESIGNS) encode render and crop with one shared trunk and compare features.
+    design: str = "concat"
 
 
 @dataclass(frozen=True)
