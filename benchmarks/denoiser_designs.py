@@ -151,7 +151,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
     steps, bs = args.samples // args.batch_size, args.batch_size
     eval_at = {round(steps * (i + 1) / args.evals) for i in range(args.evals)}
     t_held = held["t"].numpy()
-    curve, tick, train_s = [], time.perf_counter(), 0.0
+    curve, tick, train_s, window = [], time.perf_counter(), 0.0, []
     for step in range(steps):
         model.train()
         batch = batch_of(train, order[step * bs : (step + 1) * bs], config)
@@ -163,9 +163,12 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
         optimizer.step()
+        window.append([parts[k].mean().item() for k in PARTS])
         if step + 1 in eval_at:
             train_s += time.perf_counter() - tick
             row = {"samples": (step + 1) * bs, "train_s": train_s}
+            row["train_parts"] = dict(zip(PARTS, np.mean(window, axis=0).tolist(), strict=True))
+            window = []
             row["buckets"] = bucket_means(evaluate(model, held, config), t_held)
             curve.append(row)
             print(f"{design}: {row['samples']} samples, {train_s:.0f} s, held-out {row['buckets']['all']}", flush=True)
@@ -250,7 +253,7 @@ def report(out: Path) -> None:
     print(f"wrote {out / 'summary.json'} and {plot(results, identity, out / 'designs.png')}")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--train-data", help="DREAM folder the training pool is built from (first run)")
     p.add_argument("--held-data", help="DREAM folder (other frames) the held-out pool is built from")
@@ -267,12 +270,12 @@ def main() -> None:
     p.add_argument("--save-model", action="store_true", help="also save OUT/<design>.pt")
     p.add_argument("--out", default="/tmp/monose3_designs", help="folder for result_*.json, summary.json, PNG")
     p.add_argument("--report", action="store_true", help="only print the table and plot of the results in --out")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     if args.report:
         report(out)
-        return
+        return 0
     config = get_preset("cpu")
     pools = Path(args.pool_dir)
     held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, seed=1)
@@ -285,7 +288,8 @@ def main() -> None:
         suffix = "" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}"
         (out / f"result_{design}{suffix}.json").write_text(json.dumps(result, indent=1))
     report(out)
+    return 0
 
 
 if __name__ == "__main__":
-    sys.exit(run_reporting_errors(main, "denoiser_designs"))
+    sys.exit(run_reporting_errors(main, "denoiser_designs.py"))
