@@ -128,6 +128,21 @@ def evaluate(model: Denoiser | None, held: Pool, config: Config, ablation: str =
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+def identity_gradients(held: Pool, config: Config) -> dict[str, float]:
+    """Median over held-out samples of |d part / d its own raw outputs| at the identity update
+    (raw = 0): how hard each part of Eq. 10 pulls on the network's output at init."""
+    n = len(held["t"])
+    batch = batch_of(held, torch.arange(n), config)
+    raw = torch.zeros(n, 9, requires_grad=True)
+    parts = parts_of(raw, batch, config)
+    own = {"xy": slice(0, 2), "rot": slice(2, 8), "z": slice(8, 9)}
+    out = {}
+    for key in PARTS:
+        (grad,) = torch.autograd.grad(parts[key].sum(), raw, retain_graph=True)
+        out[key] = float(grad[:, own[key]].norm(dim=1).median())
+    return out
+
+
 def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[str, float]]:
     """Mean of each part by t bucket (and over all t as ``all``)."""
     out = {}
@@ -221,7 +236,7 @@ def plot(results: list[dict], identity: dict, path: Path) -> Path:
     """Held-out rot and xy parts against training samples, one panel per t bucket, identity dashed."""
     from monose3.viz import new_figure, save_figure
 
-    fig = new_figure((14.0, 6.4))
+    fig = new_figure((14.0, 7.0))
     for row, part in enumerate(("rot", "xy")):
         for col, (lo, hi) in enumerate(BUCKETS):
             key = f"{lo}-{hi}"
@@ -235,6 +250,7 @@ def plot(results: list[dict], identity: dict, path: Path) -> Path:
             ax.set_ylabel("Eq. 10 part (m)")
             ax.grid(True, alpha=0.4)
     fig.axes[0].legend(loc="best", fontsize=7)
+    fig.tight_layout()
     return save_figure(fig, path)
 
 
@@ -283,6 +299,11 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     identity = bucket_means(evaluate(None, held, config), held["t"].numpy())
     (out / "identity.json").write_text(json.dumps(identity, indent=1))
+    grads = identity_gradients(held, config)
+    print(
+        "median |d part / d own raw outputs| at the identity update: "
+        + ", ".join(f"{k} {v:.3f}" for k, v in grads.items())
+    )
     for design in args.designs:
         result = train_design(design, config, train, held, args)
         suffix = "" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}"

@@ -1,7 +1,8 @@
 """Configuration dataclasses and their named presets.
 
 ``paper`` follows the paper (ResNet34, 640x480 input, 320x240 render). ``cpu`` is the same
-code path sized to learn something useful in about an hour on a 2-core machine.
+code path sized to learn something useful in about an hour on a 2-core machine. Both use the
+paper's ``concat`` denoiser; ``NetworkConfig.design`` selects the others (network.DESIGNS).
 """
 
 from __future__ import annotations
