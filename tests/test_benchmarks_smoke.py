@@ -115,3 +115,48 @@ def test_a_benchmark_reports_bad_input_in_one_line(tmp_path: Path) -> None:
     lines = [line for line in out.stderr.splitlines() if not line.startswith("pybullet build time")]
     assert out.returncode == 2 and len(lines) == 1, out.stderr
     assert lines[0].startswith("uncertainty.py: error:") and "neither DREAM frames" in lines[0]
+
+
+def _fake_design_pool(n: int, seed: int) -> dict[str, torch.Tensor]:
+    """A pool in the layout of denoiser_designs.build_pool, from random images and poses."""
+    from monose3.se3 import euler_xyz_to_matrix, make_pose
+
+    gen = torch.Generator().manual_seed(seed)
+
+    def poses(scale: float) -> torch.Tensor:
+        rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen) * scale)
+        return make_pose(rot, torch.randn(n, 3, generator=gen) * 0.05 + torch.tensor([0.0, 0.0, 1.2]))
+
+    K = torch.tensor([[150.0, 0, 64], [0, 150, 48], [0, 0, 1]]).repeat(n, 1, 1)
+    return {
+        "render": torch.randint(0, 255, (n, 3, 96, 128), dtype=torch.uint8, generator=gen),
+        "crop": torch.randint(0, 255, (n, 3, 96, 128), dtype=torch.uint8, generator=gen),
+        "t": torch.randint(1, 101, (n,), generator=gen),
+        "pose_ref_t": poses(0.3),
+        "pose_ref_0": poses(0.3),
+        "K_crop": K,
+        "points_ref": torch.randn(n, 64, 3, generator=gen) * 0.3,
+    }
+
+
+@pytest.mark.slow
+def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[str], keep_threads: None) -> None:
+    import json
+
+    import numpy as np
+
+    bench = load("denoiser_designs")
+    pools = tmp_path / "pools"
+    pools.mkdir()
+    for name, n, seed in (("train", 16, 0), ("held", 8, 1)):
+        np.savez(pools / f"{name}.npz", **{k: v.numpy() for k, v in _fake_design_pool(n, seed).items()})
+    argv = ["--pool-dir", str(pools), "--pool-size", "16", "--held-size", "8", "--samples", "8", "--batch-size", "4"]
+    argv += ["--evals", "2", "--out", str(tmp_path / "out"), "--designs", "concat", "siamese-pose"]
+    assert bench.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "identity" in text and "siamese-pose" in text
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    for result in summary["results"]:
+        assert [row["samples"] for row in result["curve"]] == [4, 8]
+        assert set(result["ablation_pct"]) == {"zero", "swap"}
+    assert (tmp_path / "out" / "designs.png").stat().st_size > 10_000

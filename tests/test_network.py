@@ -1,10 +1,14 @@
+import pytest
 import torch
 
-from monose3.config import NetworkConfig
+from monose3.config import Config, NetworkConfig, get_preset
 from monose3.network import (
+    DESIGNS,
+    POSE_FEATURES,
     Denoiser,
     apply_update,
     disentangled_loss,
+    pose_features,
     raw_to_update,
     timestep_embedding,
     true_update,
@@ -79,3 +83,42 @@ def test_timestep_embedding_is_sinusoidal():
     emb = timestep_embedding(torch.tensor([0, 10]), 4)
     assert emb.shape == (2, 4)
     assert torch.allclose(emb[0], torch.tensor([0.0, 0.0, 1.0, 1.0]))
+
+
+@pytest.mark.parametrize("design", DESIGNS)
+def test_each_design_starts_as_identity_and_learns_from_the_render(design):
+    torch.manual_seed(0)
+    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design=design))
+    render = torch.rand(4, 3, 48, 64, requires_grad=True)
+    crop, t = torch.rand(4, 3, 48, 64), torch.tensor([1, 5, 50, 90])
+    h_t, h_0, K = _poses(4, 5), _poses(4, 6), _crop_K(4)
+    pose = pose_features(h_t, K, (64, 48), 1.5) if net.needs_pose else None
+    # A zero head: the identity update at init (Eq. 9 with v_xy = 0, dR = I, v_z = 1).
+    assert torch.equal(net(render, crop, t, pose), torch.zeros(4, 9))
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    loss, _ = disentangled_loss(net(render, crop, t, pose), h_t, h_0, K, torch.randn(4, 50, 3) * 0.3, 64)
+    loss.backward()
+    optimizer.step()
+    net.eval()
+    (grad,) = torch.autograd.grad(net(render, crop, t, pose).square().sum(), render)
+    assert grad.abs().sum() > 0  # the output depends on the render after one step
+
+
+def test_pose_features_are_x_t_in_the_crop_and_the_zoom():
+    h_t, K = _poses(3, 7), _crop_K(3)
+    feats = pose_features(h_t, K, (320, 240), 1.5)
+    assert feats.shape == (3, POSE_FEATURES)
+    assert torch.allclose(feats[:, 8], h_t[:, 2, 3] - 1.5)
+    assert torch.allclose(feats[:, 9], torch.log(torch.tensor(400.0 / 320)).expand(3))
+
+
+def test_configs_saved_before_the_design_field_load_as_concat():
+    old = get_preset("cpu").to_dict()
+    del old["network"]["design"]
+    assert Config.from_dict(old).network.design == "concat"
+    assert Config.from_dict(old) == get_preset("cpu")
+
+
+def test_unknown_design_is_refused():
+    with pytest.raises(ValueError, match="design"):
+        Denoiser(NetworkConfig(backbone="resnet18", design="nope"))

@@ -18,7 +18,7 @@ from monose3.cli import main
 from monose3.config import get_preset, with_section
 from monose3.dream import open_dataset
 from monose3.errors import Monose3Error
-from monose3.network import Denoiser
+from monose3.network import DESIGNS, Denoiser
 from monose3.training.loop import BatchMaker, Sources, learning_rate, train, train_step
 from monose3.training.samples import GlobalSampleSampler
 from monose3.training.shards import SHARD_BYTES, read_shards, split_state, write_shards
@@ -218,3 +218,17 @@ def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert read_checkpoint(tmp_path / "checkpoint.pt")["step"] == 2
+
+
+@pytest.mark.parametrize("design", DESIGNS)
+def test_every_design_trains_and_estimates(frames, design):
+    from monose3.estimator import PoseEstimator
+
+    config = with_section(tiny_config(rot_weight=3.0), "network", design=design)
+    _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
+    model = Denoiser(config.network)
+    loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
+    assert loss == pytest.approx(parts["xy"] + 3.0 * parts["rot"] + parts["z"], rel=1e-5)
+    frame = frames[0]
+    est = PoseEstimator(model, config).estimate([frame.load_image()], frame.K[None], frame.joints[None])
+    assert est.poses.shape == (1, 4, 4) and torch.isfinite(torch.from_numpy(est.poses)).all()

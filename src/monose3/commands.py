@@ -342,6 +342,12 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shard-minutes", type=float, default=1.0, help="minutes between weight-shard writes [1]")
     p.add_argument("--noise", choices=["visdiff", "fixper"], help="forward process (default visdiff)")
     p.add_argument("--gamma", type=float, help="translation noise divisor of VisDiff (default 3)")
+    p.add_argument(
+        "--design",
+        choices=["concat", "siamese", "siamese-corr", "siamese-pose"],
+        help="denoiser architecture (default: the preset's, concat = the paper's; see benchmarks/denoiser_designs.py)",
+    )
+    p.add_argument("--rot-weight", type=float, help="weight of Eq. 10's rotation part in the loss [1]")
     p.add_argument("--seed", type=int, help="seed of every random draw of the run [0]")
     p.add_argument("--resume", action="store_true", help="continue exactly from OUT/checkpoint.pt")
     p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU)")
@@ -376,10 +382,10 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
         if value is not None:
             v.check_count(value, "--" + name.replace("_", "-"))
     _non_negative(args.workers, "--workers")
-    for name in ("lr", "gamma"):
+    for name in ("lr", "gamma", "rot_weight"):
         value = getattr(args, name)
         if value is not None and not value > 0:
-            raise Monose3Error(f"--{name} must be positive, got {value}")
+            raise Monose3Error(f"--{name.replace('_', '-')} must be positive, got {value}")
     for d in args.data:
         v.check_input_dir(d, "--data")
     if args.backgrounds:

@@ -1,7 +1,8 @@
 """Configuration dataclasses and their named presets.
 
 ``paper`` follows the paper (ResNet34, 640x480 input, 320x240 render). ``cpu`` is the same
-code path sized to learn something useful in about an hour on a 2-core machine.
+code path sized to learn something useful in about an hour on a 2-core machine. Both use the
+paper's ``concat`` denoiser; ``NetworkConfig.design`` selects the others (network.DESIGNS).
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ class NetworkConfig:
     render_size: tuple[int, int] = (320, 240)  # (w, h) of the render and of the crop
     input_size: tuple[int, int] = (640, 480)  # (w, h) every input image is brought to
     time_embedding_dim: int = 4  # C_emb
+    # "concat": the paper's ResNet over concat(render, crop, C_emb) (Sec. III-C). The others
+    # (see network.DESIGNS) encode render and crop with one shared trunk and compare features.
+    design: str = "concat"
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,9 @@ class TrainConfig:
     warmup_steps: int = 500
     max_steps: int = 300_000
     grad_clip: float = 10.0
+    # Weight of Eq. 10's rotation part in the training loss (1: the paper's sum). At the identity
+    # update its gradient on the network's outputs is about 6x smaller than xy's and z's.
+    rot_weight: float = 1.0
     checkpoint_every: int = 500
     log_every: int = 20
     num_workers: int = 4

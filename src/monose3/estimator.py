@@ -14,7 +14,7 @@ import torch
 from monose3.camera import project, standardize_image
 from monose3.config import Config
 from monose3.diffusion import NoiseSchedule, base_frame, centroid_frame, ddim_step, denormalize_pose, normalize_pose
-from monose3.network import Denoiser, apply_update, raw_to_update
+from monose3.network import Denoiser, apply_update, pose_input, raw_to_update
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.se3 import euler_xyz_to_matrix, make_pose
@@ -121,7 +121,8 @@ class PoseEstimator:
         self.timings["crop"] += time.perf_counter() - tick
         tick = time.perf_counter()
         steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
-        raw = self.model(renders.to(self.device), crops.to(self.device), steps).double().cpu()
+        pose = pose_input(net, pose_ref.to(self.device), K_crop.to(self.device), self.config.diffusion.c_z)
+        raw = self.model(renders.to(self.device), crops.to(self.device), steps, pose).double().cpu()
         self.timings["network"] += time.perf_counter() - tick
         tick = time.perf_counter()
         v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])

@@ -10,6 +10,7 @@ import torchvision
 from torch import nn
 
 from monose3.config import NetworkConfig
+from monose3.diffusion import normalize_pose
 from monose3.se3 import gram_schmidt_6d, make_pose, rotation_to_6d, transform_points
 
 NUM_OUTPUTS = 9  # v_xy (2), dR 6D (6), v_z (1)
@@ -24,31 +25,142 @@ def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.cat([torch.sin(args), torch.cos(args)], dim=1)
 
 
-class Denoiser(nn.Module):
-    """ResNet (from scratch) over render (3) + crop (3) + timestep embedding (C_emb) channels.
+DESIGNS = ("concat", "siamese", "siamese-corr", "siamese-pose")
+POSE_FEATURES = 10  # x_t of Eq. 4 in the crop (9) + log(f / w) of the crop intrinsics (1)
+_CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (stride 8)
 
+
+def _resnet(backbone: str) -> torchvision.models.ResNet:
+    factory = {"resnet34": torchvision.models.resnet34, "resnet18": torchvision.models.resnet18}
+    if backbone not in factory:
+        raise ValueError(f"unknown backbone {backbone!r}")
+    return factory[backbone](weights=None)
+
+
+def _to_net_range(image: torch.Tensor) -> torch.Tensor:
+    """[0, 1] images to roughly zero-mean, unit-scale network input."""
+    return (image - 0.5) * 4.0
+
+
+def pose_features(
+    pose_ref_t: torch.Tensor, K_crop: torch.Tensor, render_size: tuple[int, int], c_z: float
+) -> torch.Tensor:
+    """The noisy pose as the network sees it, ``[B, 10]``: x_t of Eq. 4 normalised in the crop
+    (H_t's 6D rotation, its centre in crop units, tz - c_z) and log(fx / w) of the crop's
+    intrinsics, the zoom that relates crop pixels to angles."""
+    size = torch.tensor([render_size], dtype=pose_ref_t.dtype, device=pose_ref_t.device).expand(len(pose_ref_t), 2)
+    x_t = normalize_pose(pose_ref_t, K_crop.to(pose_ref_t.dtype), size, c_z)
+    zoom = torch.log(K_crop[:, 0, 0].to(pose_ref_t.dtype) / render_size[0])[:, None]
+    return torch.cat([x_t, zoom], dim=1)
+
+
+def pose_input(
+    config: NetworkConfig, pose_ref_t: torch.Tensor, K_crop: torch.Tensor, c_z: float
+) -> torch.Tensor | None:
+    """What a design reads besides the images: :func:`pose_features` for ``siamese-pose``, else None."""
+    return pose_features(pose_ref_t, K_crop, config.render_size, c_z) if config.design == "siamese-pose" else None
+
+
+def local_correlation(a: torch.Tensor, b: torch.Tensor, radius: int = _CORR_RADIUS) -> torch.Tensor:
+    """FlowNet-C style cost volume: for each displacement d in [-r, r]^2 the mean over channels
+    of a(x) * b(x + d) (features L2-normalised per cell), ``[B, (2r+1)^2, h, w]``."""
+    a = nn.functional.normalize(a, dim=1)
+    b = nn.functional.pad(nn.functional.normalize(b, dim=1), [radius] * 4)
+    h, w = a.shape[-2:]
+    span = range(2 * radius + 1)
+    return torch.stack([(a * b[:, :, i : i + h, j : j + w]).sum(1) for i in span for j in span], dim=1)
+
+
+def _zero_head(in_features: int) -> nn.Sequential:
+    """MLP to the 9 raw outputs whose last layer is zero: the identity update at init."""
+    head = nn.Sequential(nn.Linear(in_features, 256), nn.ReLU(inplace=True), nn.Linear(256, NUM_OUTPUTS))
+    nn.init.zeros_(head[2].weight)
+    nn.init.zeros_(head[2].bias)
+    return head
+
+
+class SiameseNet(nn.Module):
+    """Render and crop through one shared trunk (ResNet stem to layer2, stride 8), fused as
+    (f_r, f_c, f_r - f_c [, cost volume], C_emb), then layer3/4, pooling and an MLP head.
+
+    Sharing the trunk puts both images in one feature space, so their difference is the
+    misalignment that Eq. 9's update must undo; the crop alone is no longer a wider path.
+    With ``use_pose`` the head also gets :func:`pose_features` (x_t of Eq. 4/5 and the zoom).
+    """
+
+    def __init__(self, config: NetworkConfig, correlate: bool = False, use_pose: bool = False):
+        super().__init__()
+        net = _resnet(config.backbone)
+        self.emb_dim, self.correlate, self.use_pose = config.time_embedding_dim, correlate, use_pose
+        self.trunk = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
+        width = net.layer3[0].conv1.in_channels
+        fuse_in = 3 * width + self.emb_dim + ((2 * _CORR_RADIUS + 1) ** 2 if correlate else 0)
+        self.fuse = nn.Sequential(
+            nn.Conv2d(fuse_in, width, 1, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True)
+        )
+        self.body = nn.Sequential(net.layer3, net.layer4, nn.AdaptiveAvgPool2d(1), nn.Flatten())
+        head_in = net.fc.in_features + (self.emb_dim + POSE_FEATURES if use_pose else 0)
+        self.head = _zero_head(head_in)
+
+    def forward(
+        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None
+    ) -> torch.Tensor:
+        b = render.shape[0]
+        feats = self.trunk(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
+        f_r, f_c = feats[:b], feats[b:]
+        h, w = feats.shape[-2:]
+        parts = [f_r, f_c, f_r - f_c, emb[:, :, None, None].expand(b, -1, h, w)]
+        if self.correlate:
+            parts.append(local_correlation(f_r, f_c))
+        x = self.body(self.fuse(torch.cat(parts, dim=1)))
+        if self.use_pose:
+            if pose is None:
+                raise ValueError("this denoiser design needs the pose features of H_t (network.pose_features)")
+            x = torch.cat([x, emb, pose.to(x.dtype)], dim=1)
+        return self.head(x)
+
+
+class Denoiser(nn.Module):
+    """The pose denoiser of Sec. III-C; ``config.design`` picks the architecture (:data:`DESIGNS`).
+
+    ``concat`` (the paper's): a ResNet (from scratch) over render (3) + crop (3) + timestep
+    embedding (C_emb) channels. ``siamese``, ``siamese-corr``, ``siamese-pose``: :class:`SiameseNet`.
     Outputs raw values; :func:`raw_to_update` turns them into (v_xy, dR, v_z).
     """
 
     def __init__(self, config: NetworkConfig):
         super().__init__()
         self.config = config
-        factory = {"resnet34": torchvision.models.resnet34, "resnet18": torchvision.models.resnet18}
-        if config.backbone not in factory:
-            raise ValueError(f"unknown backbone {config.backbone!r}")
-        net = factory[config.backbone](weights=None)
-        net.conv1 = nn.Conv2d(6 + config.time_embedding_dim, 64, kernel_size=7, stride=2, padding=3, bias=False)
-        net.fc = nn.Linear(net.fc.in_features, NUM_OUTPUTS)
-        # A zero head starts as the identity update, so early training does not fling poses away.
-        nn.init.zeros_(net.fc.weight)
-        nn.init.zeros_(net.fc.bias)
-        self.net = net
+        if config.design not in DESIGNS:
+            raise ValueError(f"unknown denoiser design {config.design!r}; choose one of {DESIGNS}")
+        if config.design == "concat":
+            net = _resnet(config.backbone)
+            net.conv1 = nn.Conv2d(6 + config.time_embedding_dim, 64, kernel_size=7, stride=2, padding=3, bias=False)
+            net.fc = nn.Linear(net.fc.in_features, NUM_OUTPUTS)
+            # A zero head starts as the identity update, so early training does not fling poses away.
+            nn.init.zeros_(net.fc.weight)
+            nn.init.zeros_(net.fc.bias)
+            self.net: nn.Module = net
+        else:
+            self.net = SiameseNet(
+                config, correlate=config.design == "siamese-corr", use_pose=config.design == "siamese-pose"
+            )
 
-    def forward(self, render: torch.Tensor, crop: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """``render``, ``crop``: ``[B, 3, h, w]`` in [0, 1]; ``t``: ``[B]`` steps. Returns ``[B, 9]``."""
-        b, _, h, w = render.shape
+    @property
+    def needs_pose(self) -> bool:
+        """Whether :meth:`forward` needs ``pose`` (:func:`pose_features` of H_t)."""
+        return self.config.design == "siamese-pose"
+
+    def forward(
+        self, render: torch.Tensor, crop: torch.Tensor, t: torch.Tensor, pose: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``render``, ``crop``: ``[B, 3, h, w]`` in [0, 1]; ``t``: ``[B]`` steps; ``pose``:
+        ``[B, 10]`` from :func:`pose_features` (only read by ``siamese-pose``). Returns ``[B, 9]``."""
         emb = timestep_embedding(t, self.config.time_embedding_dim).to(render.dtype)
-        x = torch.cat([(render - 0.5) * 4.0, (crop - 0.5) * 4.0, emb[:, :, None, None].expand(b, -1, h, w)], dim=1)
+        if self.config.design != "concat":
+            return self.net(render, crop, emb, pose)
+        b, _, h, w = render.shape
+        x = torch.cat([_to_net_range(render), _to_net_range(crop), emb[:, :, None, None].expand(b, -1, h, w)], dim=1)
         return self.net(x)
 
 
@@ -100,6 +212,25 @@ def point_distance(pose_a: torch.Tensor, pose_b: torch.Tensor, points: torch.Ten
     return (transform_points(pose_a, points) - transform_points(pose_b, points)).abs().sum(-1).mean(-1)
 
 
+def disentangled_parts(
+    raw: torch.Tensor,
+    pose_ref_t: torch.Tensor,
+    pose_ref_0: torch.Tensor,
+    K_crop: torch.Tensor,
+    points_ref: torch.Tensor,
+    render_width: int,
+) -> dict[str, torch.Tensor]:
+    """Per-sample parts of Eq. 10, ``{"xy", "rot", "z"}`` each ``[B]``: each of v_xy, dR, v_z
+    judged by the pose it gives with the other two parts taken from the ground truth."""
+    v_xy, d_rot, v_z = raw_to_update(raw, render_width)
+    g_xy, g_rot, g_z = true_update(pose_ref_t, pose_ref_0, K_crop)
+    return {
+        "xy": point_distance(pose_ref_0, apply_update(pose_ref_t, v_xy, g_rot, g_z, K_crop), points_ref),
+        "rot": point_distance(pose_ref_0, apply_update(pose_ref_t, g_xy, d_rot, g_z, K_crop), points_ref),
+        "z": point_distance(pose_ref_0, apply_update(pose_ref_t, g_xy, g_rot, v_z, K_crop), points_ref),
+    }
+
+
 def disentangled_loss(
     raw: torch.Tensor,
     pose_ref_t: torch.Tensor,
@@ -108,18 +239,11 @@ def disentangled_loss(
     points_ref: torch.Tensor,
     render_width: int,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Disentangled point-matching loss, Eq. 10: each of v_xy, dR, v_z is judged by the pose it
-    gives with the other two parts taken from the ground truth.
+    """Disentangled point-matching loss, Eq. 10 (batch means of :func:`disentangled_parts`).
 
     ``points_ref``: ``[B, N, 3]`` model points in the centroid frame. Returns the batch mean
     and its three parts.
     """
-    v_xy, d_rot, v_z = raw_to_update(raw, render_width)
-    g_xy, g_rot, g_z = true_update(pose_ref_t, pose_ref_0, K_crop)
-    parts = {
-        "xy": point_distance(pose_ref_0, apply_update(pose_ref_t, v_xy, g_rot, g_z, K_crop), points_ref),
-        "rot": point_distance(pose_ref_0, apply_update(pose_ref_t, g_xy, d_rot, g_z, K_crop), points_ref),
-        "z": point_distance(pose_ref_0, apply_update(pose_ref_t, g_xy, g_rot, v_z, K_crop), points_ref),
-    }
-    parts = {k: v.mean() for k, v in parts.items()}
+    per_sample = disentangled_parts(raw, pose_ref_t, pose_ref_0, K_crop, points_ref, render_width)
+    parts = {k: v.mean() for k, v in per_sample.items()}
     return parts["xy"] + parts["rot"] + parts["z"], parts

@@ -35,10 +35,13 @@ def config_from_args(args: argparse.Namespace) -> Config:
         "num_workers": args.workers,
         "checkpoint_every": args.checkpoint_every,
         "seed": args.seed,
+        "rot_weight": args.rot_weight,
     }
     if args.minutes is not None and args.steps is None:
         train_over["max_steps"] = 10**12  # the clock decides
     config = with_section(config, "train", **{k: v for k, v in train_over.items() if v is not None})
+    if args.design:
+        config = with_section(config, "network", design=args.design)
     diff_over = {"noise": args.noise, "gamma": args.gamma}
     return with_section(config, "diffusion", **{k: v for k, v in diff_over.items() if v is not None})
 

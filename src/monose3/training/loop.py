@@ -26,7 +26,7 @@ from monose3.checkpoint import read_checkpoint, read_weights, save_checkpoint
 from monose3.config import Config
 from monose3.diffusion import make_noiser
 from monose3.errors import Monose3Error
-from monose3.network import Denoiser, disentangled_loss
+from monose3.network import Denoiser, disentangled_loss, pose_input
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.samples import FrameDataset, GlobalSampleSampler, frames_batch, noisy_views, step_generator
@@ -116,9 +116,10 @@ def train_step(
     """One optimiser step of Alg. 1 on a batch (tensors on the model's device); returns the loss."""
     for group in optimizer.param_groups:
         group["lr"] = lr
+    pose = pose_input(config.network, batch["pose_ref_t"], batch["K_crop"], config.diffusion.c_z)
     with amp():
-        raw = model(batch["render"], batch["crop"], batch["t"])
-    loss, parts = disentangled_loss(
+        raw = model(batch["render"], batch["crop"], batch["t"], pose)
+    _, parts = disentangled_loss(
         raw.float(),
         batch["pose_ref_t"],
         batch["pose_ref_0"],
@@ -126,6 +127,7 @@ def train_step(
         batch["points_ref"],
         config.network.render_size[0],
     )
+    loss = parts["xy"] + config.train.rot_weight * parts["rot"] + parts["z"]
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)

@@ -1,0 +1,320 @@
+"""Denoiser designs side by side (issue 11): which one learns to *compare* render and crop?
+
+Every candidate (``NetworkConfig.design``, see ``monose3.network.DESIGNS``) trains on the
+same fixed pool of training samples, in the same order, for the same number of samples, on
+one CPU thread, and is judged on a held-out pool made from other frames:
+
+* the three parts of Eq. 10 (xy, rot, z; metres) by t bucket (1-10, 11-20, 21-50, 51-100)
+  at a few points along training, against the identity update (zero network output);
+* the render ablation at the end: the render replaced by zeros, or by another held-out
+  sample's render, as the % change of the xy and rot parts (a network that compares render
+  and crop gets much worse; one that reads the crop alone does not).
+
+The pools are built once with the training pipeline itself (``monose3.training.loop.BatchMaker``:
+forward process, crop geometry, image crop or synthetic scene, render at H_t) from a DREAM
+folder, or from scenes synthesised on the fly (``--train-data synthetic``), and cached as
+``.npz``, so each candidate runs network-bound. Candidates can run in separate processes (``--designs`` one each) and be
+put together afterwards with ``--report``::
+
+    python -m monose3.cli generate --out /tmp/d11/train --num 600 --seed 1 --size 320x240
+    python -m monose3.cli generate --out /tmp/d11/held --num 200 --seed 2 --size 320x240
+    python benchmarks/denoiser_designs.py --train-data /tmp/d11/train --held-data /tmp/d11/held \\
+        --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat siamese --samples 8000
+    python benchmarks/denoiser_designs.py --out /tmp/d11/results --report
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from monose3.config import Config, get_preset, with_section
+from monose3.errors import Monose3Error, run_reporting_errors
+from monose3.network import DESIGNS, Denoiser, disentangled_parts, pose_features
+from monose3.training.loop import learning_rate
+
+BUCKETS = ((1, 10), (11, 20), (21, 50), (51, 100))
+PARTS = ("xy", "rot", "z")
+NUM_POINTS = 512  # model points kept per sample for Eq. 10 (of 2000)
+Pool = dict[str, torch.Tensor]
+
+
+# ---- sample pools ---------------------------------------------------------------------------
+
+
+def build_pool(data_dir: str, config: Config, num: int, seed: int) -> dict[str, np.ndarray]:
+    """``num`` training samples (steps 0.. of a run with this seed), images as uint8; ``data_dir``
+    is a DREAM folder or ``"synthetic"``."""
+    from monose3.train import load_frames
+    from monose3.training.loop import BatchMaker, Sources
+
+    config = with_section(config, "train", seed=seed, num_workers=0)
+    sources = Sources(synthetic=True) if data_dir == "synthetic" else Sources(load_frames([data_dir], config.robot))
+    maker = BatchMaker(config, sources, torch.device("cpu"), 0, 0, 1)
+    keep = np.random.default_rng(0).choice(2000, NUM_POINTS, replace=False)
+    batches = [maker.batch(step)[1] for step in range(-(-num // config.train.batch_size))]
+    pool = {k: torch.cat([b[k] for b in batches])[:num].numpy() for k in batches[0]}
+    for key in ("render", "crop"):
+        pool[key] = np.round(pool[key] * 255).astype(np.uint8)
+    pool["points_ref"] = pool["points_ref"][:, keep]
+    return pool
+
+
+def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: int) -> Pool:
+    """The cached pool at ``path``, built from ``data_dir`` first when missing or too small."""
+    if path.is_file():
+        cached = dict(np.load(path))
+        if len(cached["t"]) >= num:
+            return {k: torch.from_numpy(v[:num]) for k, v in cached.items()}
+    if data_dir is None:
+        raise Monose3Error(f"no sample pool at {path}; pass --train-data/--held-data to build it")
+    tick = time.perf_counter()
+    pool = build_pool(data_dir, config, num, seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **pool)
+    print(f"built {num} samples from {data_dir} in {time.perf_counter() - tick:.0f} s -> {path}", flush=True)
+    return {k: torch.from_numpy(v) for k, v in pool.items()}
+
+
+def batch_of(pool: Pool, idx: torch.Tensor, config: Config) -> dict[str, torch.Tensor]:
+    """Float batch of pool rows ``idx`` plus the pose features of H_t (network.pose_features)."""
+    batch = {k: v[idx] for k, v in pool.items()}
+    for key in ("render", "crop"):
+        batch[key] = batch[key].float() / 255.0
+    net, c_z = config.network, config.diffusion.c_z
+    batch["pose"] = pose_features(batch["pose_ref_t"], batch["K_crop"], net.render_size, c_z).float()
+    return batch
+
+
+# ---- training and evaluation ----------------------------------------------------------------
+
+
+def model_raw(model: Denoiser, batch: dict[str, torch.Tensor], render: torch.Tensor | None = None) -> torch.Tensor:
+    """The network's raw output on ``batch``, optionally with another ``render`` (ablation)."""
+    return model(batch["render"] if render is None else render, batch["crop"], batch["t"], batch["pose"])
+
+
+def parts_of(raw: torch.Tensor, batch: dict[str, torch.Tensor], config: Config) -> dict[str, torch.Tensor]:
+    """Per-sample parts of Eq. 10 for ``raw``."""
+    args = (batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"])
+    return disentangled_parts(raw, *args, config.network.render_size[0])
+
+
+@torch.no_grad()
+def evaluate(model: Denoiser | None, held: Pool, config: Config, ablation: str = "none") -> dict[str, np.ndarray]:
+    """Per-sample Eq. 10 parts on the held-out pool; ``model=None`` is the identity update.
+
+    ``ablation``: ``none``, ``zero`` (render replaced by zeros) or ``swap`` (by the next
+    sample's render).
+    """
+    out: dict[str, list] = {k: [] for k in PARTS}
+    if model is not None:
+        model.eval()
+    n = len(held["t"])
+    for start in range(0, n, 32):
+        idx = torch.arange(start, min(n, start + 32))
+        batch = batch_of(held, idx, config)
+        if model is None:
+            raw = torch.zeros(len(idx), 9)
+        else:
+            render = {"none": None, "zero": torch.zeros_like(batch["render"])}.get(ablation)
+            if ablation == "swap":
+                render = batch_of(held, (idx + 1) % n, config)["render"]
+            raw = model_raw(model, batch, render)
+        for k, v in parts_of(raw.float(), batch, config).items():
+            out[k].append(v.numpy())
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def identity_gradients(held: Pool, config: Config) -> dict[str, float]:
+    """Median over held-out samples of |d part / d its own raw outputs| at the identity update
+    (raw = 0): how hard each part of Eq. 10 pulls on the network's output at init."""
+    n = len(held["t"])
+    batch = batch_of(held, torch.arange(n), config)
+    raw = torch.zeros(n, 9, requires_grad=True)
+    parts = parts_of(raw, batch, config)
+    own = {"xy": slice(0, 2), "rot": slice(2, 8), "z": slice(8, 9)}
+    out = {}
+    for key in PARTS:
+        (grad,) = torch.autograd.grad(parts[key].sum(), raw, retain_graph=True)
+        out[key] = float(grad[:, own[key]].norm(dim=1).median())
+    return out
+
+
+def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[str, float]]:
+    """Mean of each part by t bucket (and over all t as ``all``)."""
+    out = {}
+    for lo, hi in BUCKETS:
+        sel = (t >= lo) & (t <= hi)
+        out[f"{lo}-{hi}"] = {k: float(v[sel].mean()) for k, v in parts.items()}
+    out["all"] = {k: float(v.mean()) for k, v in parts.items()}
+    return out
+
+
+def train_design(design: str, config: Config, train: Pool, held: Pool, args: argparse.Namespace) -> dict:
+    """Train one design for ``args.samples`` samples, evaluating ``args.evals`` times; ablate at the end."""
+    config = with_section(config, "network", design=design)
+    torch.manual_seed(args.seed)
+    model = Denoiser(config.network)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
+    gen = torch.Generator().manual_seed(args.seed)  # the same batch order for every design
+    order = torch.cat(
+        [torch.randperm(len(train["t"]), generator=gen) for _ in range(args.samples // len(train["t"]) + 1)]
+    )
+    steps, bs = args.samples // args.batch_size, args.batch_size
+    eval_at = {round(steps * (i + 1) / args.evals) for i in range(args.evals)}
+    t_held = held["t"].numpy()
+    curve, tick, train_s, window = [], time.perf_counter(), 0.0, []
+    for step in range(steps):
+        model.train()
+        batch = batch_of(train, order[step * bs : (step + 1) * bs], config)
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(step, config)
+        parts = parts_of(model_raw(model, batch), batch, config)
+        loss = parts["xy"].mean() + args.rot_weight * parts["rot"].mean() + parts["z"].mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
+        optimizer.step()
+        window.append([parts[k].mean().item() for k in PARTS])
+        if step + 1 in eval_at:
+            train_s += time.perf_counter() - tick
+            row = {"samples": (step + 1) * bs, "train_s": train_s}
+            row["train_parts"] = dict(zip(PARTS, np.mean(window, axis=0).tolist(), strict=True))
+            window = []
+            row["buckets"] = bucket_means(evaluate(model, held, config), t_held)
+            curve.append(row)
+            print(f"{design}: {row['samples']} samples, {train_s:.0f} s, held-out {row['buckets']['all']}", flush=True)
+            tick = time.perf_counter()
+    normal = evaluate(model, held, config)
+    ablations = {}
+    for name in ("zero", "swap"):
+        ablated = evaluate(model, held, config, name)
+        ablations[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
+    if args.save_model:
+        torch.save({"model": model.state_dict(), "config": config.to_dict()}, Path(args.out) / f"{design}.pt")
+    return {"design": design, "rot_weight": args.rot_weight, "curve": curve, "ablation_pct": ablations}
+
+
+# ---- report ---------------------------------------------------------------------------------
+
+
+def verdict(result: dict, identity: dict) -> dict[str, bool]:
+    """Issue 11's targets: render ablation raises xy and rot by >= 30 %; rot below identity in every bucket."""
+    last = result["curve"][-1]["buckets"]
+    abl = result["ablation_pct"]
+    return {
+        "ablation_ge_30pct": all(abl[a][k] >= 30.0 for a in ("zero", "swap") for k in ("xy", "rot")),
+        "rot_below_identity": all(last[b]["rot"] < identity[b]["rot"] for b in identity if b != "all"),
+    }
+
+
+def print_table(results: list[dict], identity: dict) -> None:
+    buckets = [f"{lo}-{hi}" for lo, hi in BUCKETS]
+    head = f"{'design':<22}{'samples':>8}{'train s':>8}  " + "  ".join(f"{'t ' + b + ' xy/rot/z':>22}" for b in buckets)
+    print(head + f"  {'zero xy/rot %':>14}  {'swap xy/rot %':>14}  targets")
+
+    def cells(b: dict) -> str:
+        return "  ".join(f"{b[k]['xy']:>6.3f} {b[k]['rot']:>6.3f} {b[k]['z']:>6.3f}     " for k in buckets)
+
+    print(f"{'identity':<22}{'-':>8}{'-':>8}  " + cells(identity))
+    for r in results:
+        last, abl = r["curve"][-1], r["ablation_pct"]
+        v = verdict(r, identity)
+        name = r["design"] + (f" (rot x{r['rot_weight']:g})" if r["rot_weight"] != 1.0 else "")
+        pct = "  ".join(f"{abl[a]['xy']:>+6.0f} {abl[a]['rot']:>+6.0f}" for a in ("zero", "swap"))
+        yes = {True: "yes", False: "no"}
+        print(
+            f"{name:<22}{last['samples']:>8}{last['train_s']:>8.0f}  {cells(last['buckets'])}  {pct}"
+            f"  abl>=30%:{yes[v['ablation_ge_30pct']]} rot<id:{yes[v['rot_below_identity']]}"
+        )
+
+
+def plot(results: list[dict], identity: dict, path: Path) -> Path:
+    """Held-out rot and xy parts against training samples, one panel per t bucket, identity dashed."""
+    from monose3.viz import new_figure, save_figure
+
+    fig = new_figure((14.0, 7.0))
+    for row, part in enumerate(("rot", "xy")):
+        for col, (lo, hi) in enumerate(BUCKETS):
+            key = f"{lo}-{hi}"
+            ax = fig.add_subplot(2, len(BUCKETS), row * len(BUCKETS) + col + 1)
+            for r in results:
+                xs = [c["samples"] for c in r["curve"]]
+                ax.plot(xs, [c["buckets"][key][part] for c in r["curve"]], marker="o", label=_label(r))
+            ax.axhline(identity[key][part], color="k", linestyle="--", label="identity update")
+            ax.set_title(f"{part} part, t {key}")
+            ax.set_xlabel("training samples")
+            ax.set_ylabel("Eq. 10 part (m)")
+            ax.grid(True, alpha=0.4)
+    fig.axes[0].legend(loc="best", fontsize=7)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def _label(result: dict) -> str:
+    return result["design"] + (f" rot x{result['rot_weight']:g}" if result["rot_weight"] != 1.0 else "")
+
+
+def report(out: Path) -> None:
+    results = [json.loads(p.read_text()) for p in sorted(out.glob("result_*.json"))]
+    if not results:
+        raise Monose3Error(f"no result_*.json in {out}; run some designs first")
+    identity = json.loads((out / "identity.json").read_text())
+    print_table(results, identity)
+    summary = {"identity": identity, "results": results, "verdict": {_label(r): verdict(r, identity) for r in results}}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"wrote {out / 'summary.json'} and {plot(results, identity, out / 'designs.png')}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--train-data", help="DREAM folder the training pool is built from (first run)")
+    p.add_argument("--held-data", help="DREAM folder (other frames) the held-out pool is built from")
+    p.add_argument("--pool-dir", default="/tmp/monose3_design_pools", help="where the pools are cached")
+    p.add_argument("--pool-size", type=int, default=4000, help="training samples in the pool")
+    p.add_argument("--held-size", type=int, default=480, help="held-out samples")
+    p.add_argument("--designs", nargs="*", default=[], choices=DESIGNS)
+    p.add_argument("--samples", type=int, default=8000, help="training samples per design")
+    p.add_argument("--evals", type=int, default=4, help="held-out evaluations along training")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--rot-weight", type=float, default=1.0, help="weight of Eq. 10's rotation part in training")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--save-model", action="store_true", help="also save OUT/<design>.pt")
+    p.add_argument("--out", default="/tmp/monose3_designs", help="folder for result_*.json, summary.json, PNG")
+    p.add_argument("--report", action="store_true", help="only print the table and plot of the results in --out")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    if args.report:
+        report(out)
+        return 0
+    config = get_preset("cpu")
+    pools = Path(args.pool_dir)
+    held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, seed=1)
+    train = load_pool(pools / "train.npz", args.train_data, config, args.pool_size, seed=0)
+    out.mkdir(parents=True, exist_ok=True)
+    identity = bucket_means(evaluate(None, held, config), held["t"].numpy())
+    (out / "identity.json").write_text(json.dumps(identity, indent=1))
+    grads = identity_gradients(held, config)
+    print(
+        "median |d part / d own raw outputs| at the identity update: "
+        + ", ".join(f"{k} {v:.3f}" for k, v in grads.items())
+    )
+    for design in args.designs:
+        result = train_design(design, config, train, held, args)
+        suffix = "" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}"
+        (out / f"result_{design}{suffix}.json").write_text(json.dumps(result, indent=1))
+    report(out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_reporting_errors(main, "denoiser_designs.py"))
