@@ -19,7 +19,7 @@ import torch
 from monose3.errors import Monose3Error
 from monose3.robot.jobs import Lighting, RenderJob
 from monose3.robot.model import RobotModel, RobotSpec
-from monose3.robot.rasterize import Fragments, rasterize
+from monose3.robot.rasterize import Fragments, gather_vertices, rasterize
 
 
 @dataclass
@@ -83,12 +83,6 @@ class RobotRenderer:
         self.device = torch.device(device)
         mesh = self.model.mesh
         self._mesh = mesh
-        link_of = mesh.vertex_link
-        # Vertices are grouped by link: one rigid transform per contiguous range.
-        self._ranges = [
-            (int(i), int(np.searchsorted(link_of, i)), int(np.searchsorted(link_of, i, side="right")))
-            for i in np.unique(link_of)
-        ]
         self._normals = _vertex_normals(mesh.vertices, mesh.faces)
         self._cullable = mesh.closed_faces()
         self._cache: dict[torch.device, dict[str, torch.Tensor]] = {}
@@ -106,6 +100,7 @@ class RobotRenderer:
                 "faces": torch.as_tensor(m.faces, dtype=torch.int64, device=device),
                 "colors": torch.as_tensor(m.face_colors, dtype=torch.float32, device=device),
                 "face_link": torch.as_tensor(m.face_link, dtype=torch.int64, device=device),
+                "vertex_link": torch.as_tensor(m.vertex_link, dtype=torch.int64, device=device),
                 "cullable": torch.as_tensor(self._cullable, device=device),
             }
         return self._cache[device]
@@ -141,12 +136,10 @@ class RobotRenderer:
     def camera_vertices(self, cam_links: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every mesh vertex and vertex normal in the camera frame: ``[B, V, 3]`` each."""
         t = self._tensors(cam_links.device)
-        verts, normals = [], []
-        for i, s, e in self._ranges:
-            rot = cam_links[:, i, :3, :3].transpose(1, 2)
-            verts.append(t["verts"][s:e] @ rot + cam_links[:, i, None, :3, 3])
-            normals.append(t["normals"][s:e] @ rot)
-        return torch.cat(verts, 1), torch.cat(normals, 1)
+        per_vertex = cam_links.index_select(1, t["vertex_link"])  # [B, V, 4, 4]; index_select: fast on CPU
+        rot = per_vertex[..., :3, :3]
+        verts = torch.einsum("bvij,vj->bvi", rot, t["verts"]) + per_vertex[..., :3, 3]
+        return verts, torch.einsum("bvij,vj->bvi", rot, t["normals"])
 
     def render(
         self,
@@ -206,10 +199,10 @@ class RobotRenderer:
         if len(bi) == 0:
             return rgb.view(b, h, w, 3).permute(0, 3, 1, 2)
         face = flat[bi, pi]
-        corners = tensors["faces"][face]  # [N, 3]
+        corners = tensors["faces"].index_select(0, face)  # [N, 3]
         bary = frags.bary.view(b, -1, 3)[bi, pi]
-        n = (normals[bi[:, None], corners] * bary[..., None]).sum(1)
-        point = (verts[bi[:, None], corners] * bary[..., None]).sum(1)
+        n = (gather_vertices(normals, bi, corners) * bary[..., None]).sum(1)
+        point = (gather_vertices(verts, bi, corners) * bary[..., None]).sum(1)
         n = torch.nn.functional.normalize(n, dim=-1)
         view = torch.nn.functional.normalize(-point, dim=-1)
         n = torch.where((n * view).sum(-1, keepdim=True) < 0, -n, n)
