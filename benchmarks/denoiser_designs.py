@@ -21,6 +21,10 @@ put together afterwards with ``--report``::
     python benchmarks/denoiser_designs.py --train-data /tmp/d11/train --held-data /tmp/d11/held \\
         --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat siamese --samples 8000
     python benchmarks/denoiser_designs.py --out /tmp/d11/results --report
+
+Models trained elsewhere (e.g. ``monose3 train --synthetic --design D`` on a lent GPU) are
+judged the same way with ``--weights RUN...`` (run folders or checkpoints), on a held-out
+pool of the same preset (``--preset``; ``--held-data synthetic`` draws it on the fly).
 """
 
 from __future__ import annotations
@@ -202,6 +206,32 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
     return {"design": design, "rot_weight": args.rot_weight, "curve": curve, "ablation_pct": ablations}
 
 
+def judge_weights(path: str, config: Config, held: Pool) -> dict:
+    """A trained run's held-out parts by t bucket and its render ablation, as a one-point curve."""
+    from monose3.checkpoint import load_model
+
+    model, saved = load_model(path)
+    if saved.network.render_size != config.network.render_size:
+        raise Monose3Error(f"{path} renders at {saved.network.render_size}; pass --preset {saved.preset}")
+    config = with_section(config, "network", design=saved.network.design)
+    state_samples = _samples_seen(path)
+    normal = evaluate(model, held, config)
+    ablations = {}
+    for name in ("zero", "swap"):
+        ablated = evaluate(model, held, config, name)
+        ablations[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
+    row = {"samples": state_samples, "train_s": 0.0, "buckets": bucket_means(normal, held["t"].numpy())}
+    name = f"{saved.network.design} [{Path(path).name}]"
+    return {"design": name, "rot_weight": saved.train.rot_weight, "curve": [row], "ablation_pct": ablations}
+
+
+def _samples_seen(path: str) -> int:
+    from monose3.checkpoint import read_weights
+
+    state = read_weights(path)
+    return int(state.get("samples", 0))
+
+
 # ---- report ---------------------------------------------------------------------------------
 
 
@@ -281,6 +311,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pool-size", type=int, default=4000, help="training samples in the pool")
     p.add_argument("--held-size", type=int, default=480, help="held-out samples")
     p.add_argument("--designs", nargs="*", default=[], choices=DESIGNS)
+    p.add_argument("--weights", nargs="*", default=[], help="trained run folders / checkpoints to judge instead")
+    p.add_argument("--preset", default="cpu", help="preset of the pools and the models (render size) [cpu]")
     p.add_argument("--samples", type=int, default=8000, help="training samples per design")
     p.add_argument("--evals", type=int, default=4, help="held-out evaluations along training")
     p.add_argument("--batch-size", type=int, default=16)
@@ -296,10 +328,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.report:
         report(out)
         return 0
-    config = get_preset("cpu")
-    pools = Path(args.pool_dir)
+    config = get_preset(args.preset)
+    pools = Path(args.pool_dir) / args.preset
     held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, seed=1)
-    train = load_pool(pools / "train.npz", args.train_data, config, args.pool_size, seed=0)
+    train = load_pool(pools / "train.npz", args.train_data, config, args.pool_size, seed=0) if args.designs else None
     out.mkdir(parents=True, exist_ok=True)
     identity = bucket_means(evaluate(None, held, config), held["t"].numpy())
     (out / "identity.json").write_text(json.dumps(identity, indent=1))
@@ -312,6 +344,9 @@ def main(argv: list[str] | None = None) -> int:
         result = train_design(design, config, train, held, args)
         suffix = "" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}"
         (out / f"result_{design}{suffix}.json").write_text(json.dumps(result, indent=1))
+    for i, path in enumerate(args.weights):
+        result = judge_weights(path, config, held)
+        (out / f"result_weights{i:02d}.json").write_text(json.dumps(result, indent=1))
     report(out)
     return 0
 

@@ -160,3 +160,22 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
         assert [row["samples"] for row in result["curve"]] == [4, 8]
         assert set(result["ablation_pct"]) == {"zero", "swap"}
     assert (tmp_path / "out" / "designs.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_denoiser_designs_judges_trained_weights(tmp_path: Path, keep_threads: None, capsys) -> None:
+    """A run trained elsewhere is judged on a held-out pool drawn on the fly (synthetic scenes)."""
+    import json
+
+    from monose3.checkpoint import save_checkpoint
+    from monose3.config import get_preset
+    from monose3.network import Denoiser
+
+    config = get_preset("cpu")
+    save_checkpoint(tmp_path / "m.pt", {"model": Denoiser(config.network).state_dict(), "config": config.to_dict()})
+    bench = load("denoiser_designs")
+    argv = ["--held-data", "synthetic", "--held-size", "16", "--weights", str(tmp_path / "m.pt")]
+    assert bench.main([*argv, "--pool-dir", str(tmp_path / "pools"), "--out", str(tmp_path / "out")]) == 0
+    result = json.loads((tmp_path / "out" / "result_weights00.json").read_text())
+    assert set(result["ablation_pct"]) == {"zero", "swap"} and "1-10" in result["curve"][0]["buckets"]
+    assert "concat [m.pt]" in capsys.readouterr().out
