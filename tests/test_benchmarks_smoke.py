@@ -147,9 +147,9 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
     bench = load("denoiser_designs")
     pools = tmp_path / "pools"
-    pools.mkdir()
+    (pools / "cpu").mkdir(parents=True)  # pools are kept per preset
     for name, n, seed in (("train", 16, 0), ("held", 8, 1)):
-        np.savez(pools / f"{name}.npz", **{k: v.numpy() for k, v in _fake_design_pool(n, seed).items()})
+        np.savez(pools / "cpu" / f"{name}.npz", **{k: v.numpy() for k, v in _fake_design_pool(n, seed).items()})
     argv = ["--pool-dir", str(pools), "--pool-size", "16", "--held-size", "8", "--samples", "8", "--batch-size", "4"]
     argv += ["--evals", "2", "--out", str(tmp_path / "out"), "--designs", "concat", "siamese-pose"]
     assert bench.main(argv) == 0

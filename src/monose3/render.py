@@ -4,7 +4,7 @@ monose3 renders with its own batched PyTorch renderer (:mod:`monose3.robot.rende
 pybullet serves the tests that check that renderer's silhouettes and ``monose3 generate
 --renderer tiny|egl``, which makes evaluation sets with another renderer than the one the
 model was trained on (our stand-in for the synthetic-to-real gap). Same interface:
-:class:`~monose3.robot.renderer.RenderJob` in, ``(rgb, mask)`` out. Poses are camera-from-base
+:class:`~monose3.robot.jobs.RenderJob` in, ``(rgb, mask)`` out. Poses are camera-from-base
 in OpenCV axes; intrinsics are pixel-centre OpenCV intrinsics.
 """
 
@@ -85,9 +85,10 @@ class Renderer:
     """A pybullet client holding one robot. Not thread-safe; one per process."""
 
     def __init__(self, robot: str | RobotSpec | RobotModel = "panda", backend: str = "auto"):
+        backend = resolve_backend(backend)  # a missing pybullet fails here, in one line
         self.model = robot if isinstance(robot, RobotModel) else RobotModel(robot)
         self.client = pb.connect(pb.DIRECT)
-        self.hardware = resolve_backend(backend) == "egl"
+        self.hardware = backend == "egl"
         if self.hardware:
             self._load_egl()
         try:

@@ -26,10 +26,18 @@ from monose3.checkpoint import read_checkpoint, read_weights, save_checkpoint
 from monose3.config import Config
 from monose3.diffusion import make_noiser
 from monose3.errors import Monose3Error
+from monose3.generate import get_profile
 from monose3.network import Denoiser, disentangled_loss, pose_input
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
-from monose3.training.samples import FrameDataset, GlobalSampleSampler, frames_batch, noisy_views, step_generator
+from monose3.training.samples import (
+    FrameDataset,
+    GlobalSampleSampler,
+    denoising_batch,
+    frames_batch,
+    noisy_views,
+    step_generator,
+)
 from monose3.training.shards import write_shards
 from monose3.training.synthetic import SceneDataset, load_photos, synthesize_crops
 
@@ -146,7 +154,7 @@ class BatchMaker:
         self.noiser = make_noiser(config.diffusion)
         self.rank, self.world = rank, world
         self.photos = load_photos(sources.backgrounds, device) if sources.synthetic else None
-        self.profile = sources.profile
+        self.profile = get_profile(sources.profile)
         loader = lambda ds: DataLoader(  # noqa: E731
             ds,
             batch_size=tc.batch_size,
@@ -182,9 +190,6 @@ class BatchMaker:
         return source, self.synthetic_batch(scenes, gen, step_generator(seed, step, self.device))
 
     def synthetic_batch(self, scenes, gen: torch.Generator, device_gen: torch.Generator) -> dict[str, torch.Tensor]:
-        from monose3.generate import get_profile
-        from monose3.training.samples import denoising_batch
-
         net = self.config.network
         joints = scenes["joints"].numpy()
         views = noisy_views(self.robot, self.noiser, self.config, scenes["pose"], joints, scenes["K"], gen)
@@ -194,7 +199,7 @@ class BatchMaker:
             views,
             net.render_size,
             net.input_size,
-            get_profile(self.profile),
+            self.profile,
             self.photos,
             device_gen,
             self.device,
