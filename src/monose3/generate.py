@@ -566,6 +566,10 @@ def _worker_main(job: _Job, tasks: mp.Queue, results: mp.Queue) -> None:
     waits on a worker that failed.
     """
     cv2.setNumThreads(1)
+    if job.backend == "torch":  # one process per core: more threads each would only contend
+        import torch
+
+        torch.set_num_threads(1)
     try:
         maker = FrameMaker(job)
     except BaseException as err:  # noqa: BLE001 - reported to the parent, which raises

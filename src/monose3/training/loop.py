@@ -265,7 +265,9 @@ def train(
     net = torch.compile(ddp_model) if compile_model else ddp_model
     log = _Log(out, step) if rank == 0 else None
     amp = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if device.type == "cuda" else nullcontext
-    bar = tqdm(total=tc.max_steps, initial=step, desc="train", unit="step", disable=not progress or rank != 0)
+    # With a clock budget the number of steps is not known in advance: count them, no total.
+    total = None if minutes is not None else tc.max_steps
+    bar = tqdm(total=total, initial=step, desc="train", unit="step", disable=not progress or rank != 0)
     losses: list[float] = []
     tick, window, last_shard, stopped_by = time.perf_counter(), [], time.perf_counter(), "steps"
     logged: dict[str, float] = {}
