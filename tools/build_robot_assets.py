@@ -21,8 +21,8 @@ import fast_simplification
 import numpy as np
 import pybullet_data
 
-from monose3.robot.meshes import concatenate, load_obj, load_stl, parse_visuals, resolve_mesh
-from monose3.robot.model import _parse_urdf
+from monose3.robot.meshes import mesh_from_visuals
+from monose3.robot.model import parse_urdf
 
 OUT = Path(__file__).resolve().parent.parent / "src" / "monose3" / "assets" / "robots"
 SOURCES = {
@@ -59,20 +59,15 @@ def build(name: str, keep: float, min_faces: int) -> None:
     shutil.copy(src, out / urdf_name)
     if licence:
         shutil.copy(Path(pybullet_data.getDataPath()) / licence, out / "LICENSE.txt")
-    _, links, _, _ = _parse_urdf(src)
-    import xml.etree.ElementTree as ET
+    _, links, _, visuals = parse_urdf(src)
+    before = 0
 
-    order = {n: i for i, n in enumerate(links)}
-    parts, before = [], 0
-    for vis in sorted(parse_visuals(ET.parse(src).getroot(), src.parent), key=lambda v: order[v.link]):
-        path = resolve_mesh(vis.filename, src.parent)
-        loader = load_obj if path.suffix.lower() == ".obj" else load_stl
-        verts, faces, colors = loader(path, vis.color)
+    def prepare(verts: np.ndarray, faces: np.ndarray, colors: np.ndarray):
+        nonlocal before
         before += len(faces)
-        verts, faces, colors = simplify(verts, faces, colors, keep, min_faces)
-        verts = verts * vis.scale @ vis.origin[:3, :3].T + vis.origin[:3, 3]
-        parts.append((order[vis.link], verts, faces, colors))
-    mesh = concatenate(tuple(links), parts)
+        return simplify(verts, faces, colors, keep, min_faces)
+
+    mesh = mesh_from_visuals(visuals, links, src, prepare)
     mesh.save(out / "meshes.npz")
     size = (out / "meshes.npz").stat().st_size / 1e6
     print(f"{name}: {before} -> {len(mesh.faces)} faces, {len(mesh.vertices)} vertices, {size:.2f} MB")

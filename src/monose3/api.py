@@ -208,7 +208,13 @@ def run_estimate(args: argparse.Namespace) -> int:
             estimator, inputs.image, joints, inputs.K, chains=inputs.chains, sampler=args.sampler, prior=inputs.prior
         )
         overlay = overlay_image(
-            inputs.image, inputs.K, joints, result.camera_from_base, estimator.robot, text=result.confidence_text
+            inputs.image,
+            inputs.K,
+            joints,
+            result.camera_from_base,
+            estimator.robot,
+            estimator.renderer,  # the estimator's own: no second mesh set-up
+            text=result.confidence_text,
         )
     finally:
         estimator.close()

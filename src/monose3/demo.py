@@ -44,7 +44,9 @@ def run_demo(args: argparse.Namespace) -> int:
     out = Path(checked.out)
     err = pose_errors(estimator.robot, joints, result.camera_from_base, truth)
     text = f"ADD {err['add_mm']:.0f} mm, {result.confidence_text}"
-    overlay = overlay_image(image, camera.K, joints, result.camera_from_base, estimator.robot, text=text)
+    overlay = overlay_image(
+        image, camera.K, joints, result.camera_from_base, estimator.robot, estimator.renderer, text=text
+    )
     write_pose_files(result, out)
     png = save_image(out / "overlay.png", overlay)
     print(f"sample scene: {SAMPLE.name} ({camera.width}x{camera.height}), robot {estimator.robot.name}")

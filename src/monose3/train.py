@@ -52,10 +52,6 @@ def run_train(args: argparse.Namespace) -> int:
 
     from monose3.training.loop import Sources, train
 
-    if args.init:
-        from monose3.checkpoint import read_weights
-
-        read_weights(args.init)  # a missing, partial or corrupt --init fails before any work
     if args.threads:
         torch.set_num_threads(args.threads)
     checked = getattr(args, "_checked", None)

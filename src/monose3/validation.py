@@ -37,6 +37,7 @@ import numpy as np
 from monose3.errors import Monose3Error
 from monose3.inputs import CameraIntrinsics, check_image_camera, load_joints, pose_from_obj
 from monose3.robot import RobotModel, get_spec
+from monose3.training import SHARD_INDEX
 
 CHECKPOINT_FORMAT = "monose3-checkpoint-v1"
 BUNDLED_CHECKPOINT = Path(__file__).parent / "assets" / "panda_cpu.pt"
@@ -357,7 +358,7 @@ def checkpoint_robot(path: str | Path | None) -> str | None:
         if path is None:
             raise Monose3Error(f"the bundled model {p.name} is missing; reinstall monose3 or pass --checkpoint")
         raise Monose3Error(f"checkpoint not found: {p} (train one with `monose3 train` or omit --checkpoint)")
-    index = p if p.name == "weights.json" else p / "weights.json"
+    index = p if p.name == SHARD_INDEX else p / SHARD_INDEX
     if index.is_file():  # a shard set written by `monose3 train`
         try:
             robot = json.loads(index.read_text())["config"]["robot"]

@@ -10,6 +10,7 @@ texture at the face's mean texture coordinate, or the URDF material colour, or g
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -212,10 +213,19 @@ def resolve_mesh(filename: str, urdf_dir: Path) -> Path:
     )
 
 
-def parse_visuals(root: ET.Element, urdf_dir: Path) -> list[Visual]:
-    """The mesh visuals of a parsed URDF (primitive shapes are skipped)."""
+def urdf_origin(elem: ET.Element | None) -> np.ndarray:
+    """The 4x4 transform of a URDF ``<origin rpy xyz>`` element (identity when absent)."""
     from monose3.se3_np import rpy_to_matrix_np
 
+    pose = np.eye(4)
+    if elem is not None:
+        pose[:3, :3] = rpy_to_matrix_np(np.array(elem.get("rpy", "0 0 0").split(), float))
+        pose[:3, 3] = np.array(elem.get("xyz", "0 0 0").split(), float)
+    return pose
+
+
+def parse_visuals(root: ET.Element, urdf_dir: Path) -> list[Visual]:
+    """The mesh visuals of a parsed URDF (primitive shapes are skipped)."""
     colors = {}
     for mat in root.findall("material"):
         col = mat.find("color")
@@ -227,11 +237,6 @@ def parse_visuals(root: ET.Element, urdf_dir: Path) -> list[Visual]:
             mesh = vis.find("geometry/mesh")
             if mesh is None:
                 continue
-            origin = np.eye(4)
-            elem = vis.find("origin")
-            if elem is not None:
-                origin[:3, :3] = rpy_to_matrix_np(np.array(elem.get("rpy", "0 0 0").split(), float))
-                origin[:3, 3] = np.array(elem.get("xyz", "0 0 0").split(), float)
             mat = vis.find("material")
             color = None
             if mat is not None:
@@ -244,7 +249,7 @@ def parse_visuals(root: ET.Element, urdf_dir: Path) -> list[Visual]:
                 Visual(
                     link=link.get("name"),
                     filename=mesh.get("filename"),
-                    origin=origin,
+                    origin=urdf_origin(vis.find("origin")),
                     scale=np.array(mesh.get("scale", "1 1 1").split(), float),
                     color=color,
                 )
@@ -265,8 +270,13 @@ def check_visual_files(visuals: list[Visual], urdf_path: Path) -> None:
             )
 
 
-def mesh_from_visuals(visuals: list[Visual], links: list[str], urdf_path: Path) -> RobotMesh:
-    """Load every visual of a URDF into one :class:`RobotMesh` (links in ``links`` order)."""
+def mesh_from_visuals(
+    visuals: list[Visual], links: list[str], urdf_path: Path, prepare: Callable | None = None
+) -> RobotMesh:
+    """Load every visual of a URDF into one :class:`RobotMesh` (links in ``links`` order).
+
+    ``prepare(vertices, faces, colors) -> (vertices, faces, colors)``, when given, is applied to
+    each mesh in its own frame before it is placed (``tools/build_robot_assets.py`` simplifies there)."""
     check_visual_files(visuals, urdf_path)
     order = {name: i for i, name in enumerate(links)}
     parts = []
@@ -274,6 +284,8 @@ def mesh_from_visuals(visuals: list[Visual], links: list[str], urdf_path: Path) 
         path = resolve_mesh(vis.filename, urdf_path.parent)
         loader = load_obj if path.suffix.lower() == ".obj" else load_stl
         verts, faces, colors = loader(path, vis.color)
+        if prepare is not None:
+            verts, faces, colors = prepare(verts, faces, colors)
         verts = verts * vis.scale @ vis.origin[:3, :3].T + vis.origin[:3, 3]
         parts.append((order[vis.link], verts, faces, colors))
     return concatenate(tuple(links), parts)

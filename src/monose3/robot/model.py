@@ -17,8 +17,15 @@ from pathlib import Path
 import numpy as np
 
 from monose3.errors import Monose3Error
-from monose3.robot.meshes import RobotMesh, Visual, check_visual_files, mesh_from_visuals, parse_visuals
-from monose3.se3_np import axis_angle_to_matrix_np, rpy_to_matrix_np
+from monose3.robot.meshes import (
+    RobotMesh,
+    Visual,
+    check_visual_files,
+    mesh_from_visuals,
+    parse_visuals,
+    urdf_origin,
+)
+from monose3.se3_np import axis_angle_to_matrix_np
 
 NUM_SURFACE_POINTS = 2000
 
@@ -121,15 +128,7 @@ class _Joint:
     offset: float = 0.0
 
 
-def _origin(elem: ET.Element | None) -> np.ndarray:
-    pose = np.eye(4)
-    if elem is not None:
-        pose[:3, :3] = rpy_to_matrix_np(np.array(elem.get("rpy", "0 0 0").split(), float))
-        pose[:3, 3] = np.array(elem.get("xyz", "0 0 0").split(), float)
-    return pose
-
-
-def _parse_urdf(path: Path) -> tuple[str, list[str], list[_Joint], list[Visual]]:
+def parse_urdf(path: Path) -> tuple[str, list[str], list[_Joint], list[Visual]]:
     try:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError) as err:
@@ -144,7 +143,7 @@ def _parse_urdf(path: Path) -> tuple[str, list[str], list[_Joint], list[Visual]]
                 kind=j.get("type"),
                 parent=j.find("parent").get("link"),
                 child=j.find("child").get("link"),
-                origin=_origin(j.find("origin")),
+                origin=urdf_origin(j.find("origin")),
                 axis=np.array((axis.get("xyz") if axis is not None else "1 0 0").split(), float),
                 lower=float(limit.get("lower", "-inf")) if limit is not None else -np.inf,
                 upper=float(limit.get("upper", "inf")) if limit is not None else np.inf,
@@ -186,7 +185,7 @@ class RobotModel:
         self.urdf_path = Path(self.spec.urdf)
         if not self.urdf_path.is_file():
             raise Monose3Error(f"URDF not found: {self.urdf_path}")
-        self.root, self.links, self._joints, self._visuals = _parse_urdf(self.urdf_path)
+        self.root, self.links, self._joints, self._visuals = parse_urdf(self.urdf_path)
         self.link_index = {name: i for i, name in enumerate(self.links)}
         self._order = self._topological_joints()
         movable = [j for j in self._joints if j.kind in ("revolute", "continuous", "prismatic")]

@@ -21,7 +21,7 @@ from torch.utils.data import Dataset
 from torchvision.ops import roi_align
 
 from monose3.errors import Monose3Error
-from monose3.generate import IMAGE_EXTS, SceneProfile, frame_rng, get_profile, sample_scene
+from monose3.generate import IMAGE_EXTS, SceneProfile, frame_rng, get_profile, list_backgrounds, sample_scene
 from monose3.robot import RobotModel, RobotSpec
 from monose3.robot.renderer import LightingBatch, RobotRenderer
 from monose3.training.samples import NoisyViews
@@ -69,10 +69,7 @@ def load_photos(folder: str | Path | None, device: torch.device) -> torch.Tensor
 
     images = []
     if folder is not None:
-        folder = Path(folder)
-        if not folder.is_dir():
-            raise Monose3Error(f"backgrounds folder not found: {folder} (pass a folder of .jpg/.png images)")
-        for path in sorted(p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_EXTS):
+        for path in list_backgrounds(folder):
             bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if bgr is not None:
                 images.append(bgr[..., ::-1])
