@@ -23,10 +23,10 @@ import torch
 from tqdm import tqdm
 
 from monose3.api import load_estimator
-from monose3.dream import open_dataset
+from monose3.data.dream import open_dataset
 from monose3.errors import run_reporting_errors
-from monose3.metrics import add_per_frame, summarize
-from monose3.se3_np import perturb_poses_np
+from monose3.geometry.poses import perturb_poses
+from monose3.report.metrics import add_per_frame, summarize
 
 
 def run(estimator, frames, mode: str, batch: int, limit: int | None, motion: tuple[float, float]) -> dict:
@@ -40,7 +40,7 @@ def run(estimator, frames, mode: str, batch: int, limit: int | None, motion: tup
         joints = np.stack([f.joints for f in chunk])
         tick = time.perf_counter()
         if mode == "tracking":
-            start = perturb_poses_np(np.stack([f.pose for f in chunk]), rng, *motion)
+            start = perturb_poses(np.stack([f.pose for f in chunk]), rng, *motion)
             est = estimator.track(images, Ks, joints, start)
         else:
             sampler, k, m = {

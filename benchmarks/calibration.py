@@ -40,11 +40,9 @@ import numpy as np
 import torch
 
 from monose3.api import load_estimator
-from monose3.calibrate import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
-from monose3.checkpoint import read_checkpoint
-from monose3.dream import open_dataset, write_camera_settings, write_frame
-from monose3.errors import Monose3Error, run_reporting_errors
-from monose3.generate import (
+from monose3.apps.calibrate import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
+from monose3.data.dream import open_dataset, write_camera_settings, write_frame
+from monose3.data.scenes import (
     PROFILES,
     BackgroundSource,
     _draw_shapes,
@@ -52,10 +50,12 @@ from monose3.generate import (
     frame_rng,
     sample_scene,
 )
+from monose3.errors import Monose3Error, run_reporting_errors
+from monose3.geometry.averaging import pose_residuals
+from monose3.report.figures import new_figure, save_figure
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RenderJob, RobotRenderer
-from monose3.se3_average import pose_residuals
-from monose3.viz import new_figure, save_figure
+from monose3.training.checkpoints import read_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SIZE = (640, 480)

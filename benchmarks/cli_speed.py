@@ -24,7 +24,7 @@ from monose3.errors import run_reporting_errors
 GOAL_S = 1.0
 SRC = Path(__file__).resolve().parents[1] / "src"
 PROBE = (
-    "import sys\nfrom monose3.cli import main\n"
+    "import sys\nfrom monose3.apps.cli import main\n"
     "try:\n    rc = main(sys.argv[1:])\nexcept SystemExit as e:\n    rc = e.code or 0\n"
     "print('HEAVY=' + ','.join(m for m in ('torch', 'pybullet') if m in sys.modules), file=sys.stderr)\n"
     "sys.exit(rc)\n"

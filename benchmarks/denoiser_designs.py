@@ -1,6 +1,6 @@
 """Denoiser designs side by side (issue 11): which one learns to *compare* render and crop?
 
-Every candidate (``NetworkConfig.design``, see ``monose3.network.DESIGNS``) trains on the
+Every candidate (``NetworkConfig.design``, see ``monose3.method.denoiser.DESIGNS``) trains on the
 same fixed pool of training samples, in the same order, for the same number of samples, on
 one CPU thread, and is judged on a held-out pool made from other frames:
 
@@ -16,8 +16,8 @@ folder, or from scenes synthesised on the fly (``--train-data synthetic``), and 
 ``.npz``, so each candidate runs network-bound. Candidates can run in separate processes (``--designs`` one each) and be
 put together afterwards with ``--report``::
 
-    python -m monose3.cli generate --out /tmp/d11/train --num 600 --seed 1 --size 320x240
-    python -m monose3.cli generate --out /tmp/d11/held --num 200 --seed 2 --size 320x240
+    python -m monose3.apps.cli generate --out /tmp/d11/train --num 600 --seed 1 --size 320x240
+    python -m monose3.apps.cli generate --out /tmp/d11/held --num 200 --seed 2 --size 320x240
     python benchmarks/denoiser_designs.py --train-data /tmp/d11/train --held-data /tmp/d11/held \\
         --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat siamese --samples 8000
     python benchmarks/denoiser_designs.py --out /tmp/d11/results --report
@@ -38,9 +38,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.config import Config, get_preset, with_section
 from monose3.errors import Monose3Error, run_reporting_errors
-from monose3.network import DESIGNS, Denoiser, disentangled_parts, pose_features
+from monose3.method.config import Config, get_preset, with_section
+from monose3.method.denoiser import DESIGNS, Denoiser, pose_features
+from monose3.method.loss import disentangled_parts
 from monose3.training.loop import learning_rate
 
 BUCKETS = ((1, 10), (11, 20), (21, 50), (51, 100))
@@ -55,7 +56,7 @@ Pool = dict[str, torch.Tensor]
 def build_pool(data_dir: str, config: Config, num: int, seed: int) -> dict[str, np.ndarray]:
     """``num`` training samples (steps 0.. of a run with this seed), images as uint8; ``data_dir``
     is a DREAM folder or ``"synthetic"``."""
-    from monose3.train import load_frames
+    from monose3.apps.train import load_frames
     from monose3.training.loop import BatchMaker, Sources
 
     config = with_section(config, "train", seed=seed, num_workers=0)
@@ -208,7 +209,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
 
 def judge_weights(path: str, config: Config, held: Pool) -> dict:
     """A trained run's held-out parts by t bucket and its render ablation, as a one-point curve."""
-    from monose3.checkpoint import load_model
+    from monose3.training.checkpoints import load_model
 
     model, saved = load_model(path)
     if saved.network.render_size != config.network.render_size:
@@ -226,7 +227,7 @@ def judge_weights(path: str, config: Config, held: Pool) -> dict:
 
 
 def _samples_seen(path: str) -> int:
-    from monose3.checkpoint import read_weights
+    from monose3.training.checkpoints import read_weights
 
     state = read_weights(path)
     return int(state.get("samples", 0))
@@ -268,7 +269,7 @@ def print_table(results: list[dict], identity: dict) -> None:
 
 def plot(results: list[dict], identity: dict, path: Path) -> Path:
     """Held-out rot and xy parts against training samples, one panel per t bucket, identity dashed."""
-    from monose3.viz import new_figure, save_figure
+    from monose3.report.figures import new_figure, save_figure
 
     fig = new_figure((14.0, 7.0))
     for row, part in enumerate(("rot", "xy")):

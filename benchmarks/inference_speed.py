@@ -1,6 +1,6 @@
 """Inference speed against the paper's Table III: FPS and where the time goes.
 
-One 640x480 synthetic image (``monose3.generate``), a randomly initialised denoiser (weights do
+One 640x480 synthetic image (``monose3.data.scenes``), a randomly initialised denoiser (weights do
 not change the speed; its zero-initialised head keeps the pose at RoboPose's initialisation, a
 typical view of the robot), one hypothesis. Modes:
 
@@ -38,14 +38,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.config import get_preset
-from monose3.diffusion import base_frame, centroid_frame
-from monose3.dream import open_dataset
+from monose3.data.dream import open_dataset
+from monose3.data.scenes import generate_dataset
 from monose3.errors import run_reporting_errors
-from monose3.estimator import PoseEstimator
-from monose3.generate import generate_dataset
-from monose3.network import Denoiser, apply_update, raw_to_update
-from monose3.views import crop_batch, crop_geometry
+from monose3.method.config import get_preset
+from monose3.method.denoiser import Denoiser
+from monose3.method.estimator import PoseEstimator
+from monose3.method.pose_space import base_frame, centroid_frame
+from monose3.method.render_compare import crop_batch, crop_geometry
+from monose3.method.update import apply_update, raw_to_update
 
 TARGETS_FPS = {"10 steps": 0.65, "5 steps": 1.30, "tracking": 6.5}
 OVERHEAD_LIMIT = 0.15

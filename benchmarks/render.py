@@ -19,8 +19,8 @@ import time
 import numpy as np
 import torch
 
+from monose3.data.scenes import PROFILES, sample_scene
 from monose3.errors import run_reporting_errors
-from monose3.generate import PROFILES, sample_scene
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RenderJob, RobotRenderer
 
@@ -68,7 +68,7 @@ def torch_rate(renderer: RobotRenderer, jobs: list[RenderJob], batch: int, secon
 
 def pybullet_rate(model: RobotModel, jobs: list[RenderJob], seconds: float, workers: int) -> float | None:
     try:
-        from monose3.render import RendererPool
+        from monose3.robot.reference import RendererPool
     except ImportError:
         return None
     with RendererPool(model.spec, workers=workers, backend="tiny") as pool:
@@ -82,8 +82,8 @@ def pybullet_rate(model: RobotModel, jobs: list[RenderJob], seconds: float, work
 
 def save_comparison(model: RobotModel, renderer: RobotRenderer, path: str, size=(320, 240), n: int = 4) -> None:
     """Rows of (monose3, pybullet TinyRenderer, silhouette difference) for ``n`` training-like views."""
-    from monose3.render import Renderer
-    from monose3.viz import save_image
+    from monose3.report.figures import save_image
+    from monose3.robot.reference import Renderer
 
     jobs = make_jobs(model, size, n, seed=5)
     ours = renderer.render_jobs(jobs)

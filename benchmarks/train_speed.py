@@ -27,11 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.config import Config, get_preset
-from monose3.dream import open_dataset
+from monose3.data.dream import open_dataset
+from monose3.data.scenes import generate_dataset
 from monose3.errors import run_reporting_errors
-from monose3.generate import generate_dataset
-from monose3.network import Denoiser
+from monose3.method.config import Config, get_preset
+from monose3.method.denoiser import Denoiser
 from monose3.training.loop import BatchMaker, Sources, train_step
 
 GPU_GOAL = {"paper": 3000.0}  # samples/s on one H100 (issue: training that fills a lent GPU)

@@ -43,12 +43,12 @@ import numpy as np
 import torch
 
 from monose3.api import UNRELIABLE_MM, load_estimator, prior_arguments
-from monose3.checkpoint import read_checkpoint
-from monose3.dream import open_dataset
+from monose3.data.dream import open_dataset
 from monose3.errors import run_reporting_errors
-from monose3.metrics import add_per_frame, auc
-from monose3.se3_np import perturb_poses_np
-from monose3.viz import new_figure, save_figure
+from monose3.geometry.poses import perturb_poses
+from monose3.report.figures import new_figure, save_figure
+from monose3.report.metrics import add_per_frame, auc
+from monose3.training.checkpoints import read_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 FAILURE_M = 0.05
@@ -80,7 +80,7 @@ def measure(
         truth = np.stack([f.keypoints_3d for f in frames])
         priors = None
         if prior_error is not None:
-            priors = perturb_poses_np(np.stack([f.pose for f in frames]), rng, *prior_error)
+            priors = perturb_poses(np.stack([f.pose for f in frames]), rng, *prior_error)
             prior_adds.append(add_per_frame(estimator.robot.keypoints(joints, priors), truth))
         est = estimator.estimate(
             [f.load_image() for f in frames],

@@ -2,7 +2,7 @@
 first claim, Sec. III-B). Pure geometry, no rendering: runs in seconds.
 
 Ground-truth poses are drawn like real scenes (Panda with random joints, a camera 0.8-2.5 m from
-the robot's centroid looking at it, random intrinsics of a 640x480 image: ``monose3.generate``'s
+the robot's centroid looking at it, random intrinsics of a 640x480 image: ``monose3.data.scenes``'s
 scene sampler). For each forward process and timestep t we draw noisy poses H_t from H_0 with
 the training code's own noisers and measure
 
@@ -38,13 +38,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.config import DiffusionConfig
-from monose3.diffusion import FixPerNoiser, VisDiffNoiser, centroid_frame
+from monose3.data.scenes import PROFILES, sample_scene
 from monose3.errors import run_reporting_errors
-from monose3.generate import PROFILES, sample_scene
+from monose3.geometry.poses import make_pose, transform_points
+from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
+from monose3.method.config import DiffusionConfig
+from monose3.method.pose_space import centroid_frame
+from monose3.method.scheduler import FixPerNoiser, VisDiffNoiser
+from monose3.report.figures import new_figure, save_figure
 from monose3.robot import RobotModel
-from monose3.se3 import euler_xyz_to_matrix, make_pose, rotation_angle, transform_points
-from monose3.viz import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SIZE = (640, 480)

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from monose3.checkpoint import save_checkpoint
-from monose3.config import NetworkConfig, get_preset
-from monose3.generate import look_at as look_at_rotation
-from monose3.network import Denoiser
+from monose3.data.scenes import look_at as look_at_rotation
+from monose3.method.config import NetworkConfig, get_preset
+from monose3.method.denoiser import Denoiser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
+from monose3.training.checkpoints import save_checkpoint
 
 ROBOTS = ("panda", "kuka")
 
@@ -71,7 +71,7 @@ def renderers(models: dict[str, RobotModel]) -> dict[str, RobotRenderer]:
 def pybullet_renderers(models: dict[str, RobotModel]) -> Iterator[dict]:
     """pybullet's TinyRenderer per robot: the independent reference (skipped without pybullet)."""
     pytest.importorskip("pybullet")
-    from monose3.render import Renderer
+    from monose3.robot.reference import Renderer
 
     rend = {name: Renderer(model, "tiny") for name, model in models.items()}
     yield rend
@@ -114,7 +114,7 @@ def sample_view() -> Callable[..., View]:
 @pytest.fixture(scope="session")
 def tiny_dream(tmp_path_factory):
     """Six small generated DREAM frames (160x120), shared by the training and inference tests."""
-    from monose3.generate import generate_dataset
+    from monose3.data.scenes import generate_dataset
 
     return generate_dataset(
         tmp_path_factory.mktemp("tiny_dream"), 6, seed=3, workers=0, size=(160, 120), progress=False

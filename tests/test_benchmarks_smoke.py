@@ -119,7 +119,8 @@ def test_a_benchmark_reports_bad_input_in_one_line(tmp_path: Path) -> None:
 
 def _fake_design_pool(n: int, seed: int) -> dict[str, torch.Tensor]:
     """A pool in the layout of denoiser_designs.build_pool, from random images and poses."""
-    from monose3.se3 import euler_xyz_to_matrix, make_pose
+    from monose3.geometry.poses import make_pose
+    from monose3.geometry.rotations import euler_xyz_to_matrix
 
     gen = torch.Generator().manual_seed(seed)
 
@@ -167,9 +168,9 @@ def test_denoiser_designs_judges_trained_weights(tmp_path: Path, keep_threads: N
     """A run trained elsewhere is judged on a held-out pool drawn on the fly (synthetic scenes)."""
     import json
 
-    from monose3.checkpoint import save_checkpoint
-    from monose3.config import get_preset
-    from monose3.network import Denoiser
+    from monose3.method.config import get_preset
+    from monose3.method.denoiser import Denoiser
+    from monose3.training.checkpoints import save_checkpoint
 
     config = get_preset("cpu")
     save_checkpoint(tmp_path / "m.pt", {"model": Denoiser(config.network).state_dict(), "config": config.to_dict()})

@@ -13,7 +13,7 @@ import pytest
 import yaml
 from conftest import look_at
 
-from monose3.calibrate import (
+from monose3.apps.calibrate import (
     REASON_CONSENSUS,
     REASON_OUT_OF_VIEW,
     REASON_UNRELIABLE,
@@ -21,27 +21,25 @@ from monose3.calibrate import (
     load_frames,
     write_calibration_files,
 )
-from monose3.checkpoint import save_checkpoint
-from monose3.cli import main
-from monose3.config import get_preset, with_section
-from monose3.dream import write_frame
+from monose3.apps.cli import main
+from monose3.data.dream import write_frame
 from monose3.errors import Monose3Error
-from monose3.estimator import Estimate, PoseEstimator
-from monose3.network import Denoiser
-from monose3.robot.jobs import RenderJob
-from monose3.se3_average import (
+from monose3.geometry.averaging import (
     geometric_median,
-    make_pose_np,
     mean_pose,
     pose_residuals,
     quaternion_mean,
     robust_consensus,
     robust_pose_average,
-    rotation_angle,
     rotation_l1_median,
-    so3_exp,
-    so3_log,
 )
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import matrix_to_rotvec, rotation_angle, rotvec_to_matrix
+from monose3.method.config import get_preset, with_section
+from monose3.method.denoiser import Denoiser
+from monose3.method.estimator import Estimate, PoseEstimator
+from monose3.robot.jobs import RenderJob
+from monose3.training.checkpoints import save_checkpoint
 
 SIZE = (160, 120)
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
@@ -54,28 +52,28 @@ N_FRAMES = 8
 def noisy_poses(rng, true, n, trans_std, rot_std_deg, outlier_fraction=0.0):
     """``n`` poses around ``true``; the first ``outlier_fraction`` of them are gross errors
     (any rotation, translation 0.3-1 m off)."""
-    rots = true[:3, :3] @ so3_exp(rng.normal(size=(n, 3)) * np.radians(rot_std_deg))
+    rots = true[:3, :3] @ rotvec_to_matrix(rng.normal(size=(n, 3)) * np.radians(rot_std_deg))
     trans = true[:3, 3] + rng.normal(size=(n, 3)) * trans_std
-    poses = np.stack([make_pose_np(r, t) for r, t in zip(rots, trans, strict=True)])
+    poses = np.stack([make_pose(r, t) for r, t in zip(rots, trans, strict=True)])
     k = int(round(outlier_fraction * n))
     for i in range(k):
         axis = rng.normal(size=3)
         angle = rng.uniform(np.radians(30), np.pi)
         offset = rng.normal(size=3)
         offset *= rng.uniform(0.3, 1.0) / np.linalg.norm(offset)
-        poses[i] = make_pose_np(true[:3, :3] @ so3_exp(axis / np.linalg.norm(axis) * angle), true[:3, 3] + offset)
+        poses[i] = make_pose(true[:3, :3] @ rotvec_to_matrix(axis / np.linalg.norm(axis) * angle), true[:3, 3] + offset)
     return poses
 
 
-TRUE = make_pose_np(so3_exp(np.array([2.0, -0.5, 0.7])), np.array([0.1, -0.2, 1.6]))
+TRUE = make_pose(rotvec_to_matrix(np.array([2.0, -0.5, 0.7])), np.array([0.1, -0.2, 1.6]))
 
 
 def test_so3_log_exp_round_trip_including_near_pi():
     rng = np.random.default_rng(0)
     w = rng.normal(size=(200, 3))
     w = w / np.linalg.norm(w, axis=1, keepdims=True) * rng.uniform(0, np.pi - 1e-6, size=(200, 1))
-    assert np.allclose(so3_log(so3_exp(w)), w, atol=1e-6)
-    r = so3_exp(w)
+    assert np.allclose(matrix_to_rotvec(rotvec_to_matrix(w)), w, atol=1e-6)
+    r = rotvec_to_matrix(w)
     assert np.allclose(r @ np.swapaxes(r, 1, 2), np.eye(3), atol=1e-12)
     assert np.allclose(np.degrees(rotation_angle(np.eye(3), r)), np.degrees(np.linalg.norm(w, axis=1)), atol=1e-6)
 
@@ -111,8 +109,8 @@ def test_rotation_average_across_the_quaternion_sign_flip():
     # Rotations around 179.5 deg: half of them have quaternions on the other side of w = 0.
     rng = np.random.default_rng(3)
     axis = np.array([0.0, 0.6, 0.8])
-    centre = so3_exp(axis * np.radians(179.5))
-    rots = centre @ so3_exp(rng.normal(size=(30, 3)) * np.radians(1.0))
+    centre = rotvec_to_matrix(axis * np.radians(179.5))
+    rots = centre @ rotvec_to_matrix(rng.normal(size=(30, 3)) * np.radians(1.0))
     for average in (quaternion_mean, rotation_l1_median):
         assert np.degrees(rotation_angle(average(rots), centre)) < 0.5
 
@@ -123,7 +121,7 @@ def test_geometric_median_and_small_sets():
     assert np.allclose(geometric_median(pts[:1]), pts[0])
     one = robust_consensus(TRUE[None])
     assert one.inliers.all() and np.allclose(one.pose, TRUE)
-    two = robust_consensus(np.stack([TRUE, make_pose_np(TRUE[:3, :3], TRUE[:3, 3] + 1.0)]))
+    two = robust_consensus(np.stack([TRUE, make_pose(TRUE[:3, :3], TRUE[:3, 3] + 1.0)]))
     assert two.inliers.all()  # nothing can be called an outlier among two
     with pytest.raises(Monose3Error, match="NaN"):
         robust_pose_average(np.full((3, 4, 4), np.nan))
@@ -201,7 +199,7 @@ class ScriptedEstimator(PoseEstimator):
             what = self.script.get(i, "good")
             pose = noisy_poses(self.rng, POSE, 1, trans_std=0.004, rot_std_deg=0.5)[0]
             if what == "outlier":
-                pose = make_pose_np(POSE[:3, :3] @ so3_exp(np.array([0.0, 0.0, 0.6])), POSE[:3, 3] + 0.3)
+                pose = make_pose(POSE[:3, :3] @ rotvec_to_matrix(np.array([0.0, 0.0, 0.6])), POSE[:3, 3] + 0.3)
             poses.append(pose)
             in_view.append(what != "out")
             spread.append(120.0 if what == "unreliable" else 3.0)

@@ -1,5 +1,5 @@
-"""Camera geometry: projection, RoboPose's crop rule, crop intrinsics against real crop pixels,
-image standardisation and intrinsics checks."""
+"""Camera geometry: projection, RoboPose's crop rule, crop intrinsics_matrix against real crop pixels,
+image standardisation and intrinsics_matrix checks."""
 
 from __future__ import annotations
 
@@ -8,17 +8,17 @@ import numpy as np
 import pytest
 import torch
 
-from monose3.camera import (
+from monose3.errors import Monose3Error
+from monose3.geometry.camera import (
     CROP_MARGIN,
-    check_intrinsics,
+    check_K,
     crop_boxes,
     crop_images,
     crop_intrinsics,
-    intrinsics,
+    intrinsics_matrix,
     project,
     standardize_image,
 )
-from monose3.errors import Monose3Error
 from monose3.robot.jobs import RenderJob
 
 CROP = (320, 240)
@@ -55,7 +55,7 @@ def _mask_centroid(mask: np.ndarray) -> np.ndarray:
 def test_project_matches_opencv():
     rng = np.random.default_rng(20)
     pts = np.c_[rng.uniform(-1, 1, (2, 30, 2)), rng.uniform(0.3, 4, (2, 30, 1))]
-    Ks = np.stack([intrinsics(600, 610, 320.5, 240.2), intrinsics(300, 290, 100.0, 130.0)])
+    Ks = np.stack([intrinsics_matrix(600, 610, 320.5, 240.2), intrinsics_matrix(300, 290, 100.0, 130.0)])
     uv = project(torch.as_tensor(pts), torch.as_tensor(Ks)).numpy()
     assert uv.shape == (2, 30, 2)
     for b in range(2):
@@ -106,7 +106,7 @@ def test_crop_boxes_not_clamped_to_image():
     assert box[0] < -50 and box[1] < -30 and box[2] > 700 and box[3] > 500
 
 
-# ---- crop intrinsics ------------------------------------------------------------------------
+# ---- crop intrinsics_matrix ------------------------------------------------------------------------
 
 
 def _random_boxes(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -119,7 +119,7 @@ def _random_boxes(rng: np.random.Generator, n: int) -> np.ndarray:
 def test_crop_intrinsics_is_the_crop_affine_map():
     rng = np.random.default_rng(22)
     n = 8
-    K = np.stack([intrinsics(*rng.uniform(400, 700, 2), *rng.uniform([280, 200], [360, 280])) for _ in range(n)])
+    K = np.stack([intrinsics_matrix(*rng.uniform(400, 700, 2), *rng.uniform([280, 200], [360, 280])) for _ in range(n)])
     boxes = _random_boxes(rng, n)
     boxes[:, 3] = boxes[:, 1] + (boxes[:, 2] - boxes[:, 0]) * rng.uniform(0.6, 0.9, n)  # any aspect
     pts = np.c_[rng.uniform(-0.5, 0.5, (n, 40, 2)), rng.uniform(0.5, 3, (n, 40, 1))]
@@ -135,10 +135,10 @@ def test_crop_intrinsics_is_the_crop_affine_map():
 
 def test_crop_images_pixels_agree_with_crop_intrinsics():
     """Blobs painted at projected points are found, in the roi_align crop, at the projection
-    through the crop intrinsics: the crop and its intrinsics share one pixel convention."""
+    through the crop intrinsics_matrix: the crop and its intrinsics_matrix share one pixel convention."""
     rng = np.random.default_rng(23)
     W, H = 640, 480
-    K = intrinsics(520.0, 515.0, 331.3, 236.8)
+    K = intrinsics_matrix(520.0, 515.0, 331.3, 236.8)
     n = 6
     boxes = _random_boxes(rng, n)
     worst, found_blobs = 0.0, 0
@@ -169,7 +169,7 @@ def test_crop_images_pixels_agree_with_crop_intrinsics():
             worst = max(worst, float(np.abs(found - p).max()))
             found_blobs += 1
     assert found_blobs >= 10
-    assert worst < 0.25, f"blob found {worst:.3f} px from the crop-intrinsics projection"
+    assert worst < 0.25, f"blob found {worst:.3f} px from the crop-intrinsics_matrix projection"
 
 
 def test_crop_images_pads_outside_with_zeros():
@@ -182,7 +182,7 @@ def test_crop_images_pads_outside_with_zeros():
 
 def test_crop_of_full_render_matches_render_with_crop_intrinsics(models, renderers, sample_view):
     """RoboPose's loop: crop the 640x480 image around the robot, and render directly with the crop
-    intrinsics at 320x240: the two masks coincide."""
+    intrinsics_matrix at 320x240: the two masks coincide."""
     model, renderer = models["panda"], renderers["panda"]
     rng = np.random.default_rng(24)
     checked = 0
@@ -214,11 +214,11 @@ def test_crop_of_full_render_matches_render_with_crop_intrinsics(models, rendere
 @pytest.mark.parametrize(
     ("size", "K"),
     [
-        ((1280, 720), intrinsics(910.0, 905.0, 641.2, 362.7)),  # 16:9: pad bottom, then halve
-        ((640, 360), intrinsics(455.0, 455.0, 320.4, 180.1)),  # 16:9 at target width: pad only
-        ((480, 640), intrinsics(600.0, 600.0, 240.0, 320.0)),  # portrait: pad right, then shrink
-        ((320, 240), intrinsics(300.0, 302.0, 158.3, 121.9)),  # 4:3, upscale only
-        ((640, 480), intrinsics(615.5, 615.2, 328.3, 251.8)),  # already standard: unchanged
+        ((1280, 720), intrinsics_matrix(910.0, 905.0, 641.2, 362.7)),  # 16:9: pad bottom, then halve
+        ((640, 360), intrinsics_matrix(455.0, 455.0, 320.4, 180.1)),  # 16:9 at target width: pad only
+        ((480, 640), intrinsics_matrix(600.0, 600.0, 240.0, 320.0)),  # portrait: pad right, then shrink
+        ((320, 240), intrinsics_matrix(300.0, 302.0, 158.3, 121.9)),  # 4:3, upscale only
+        ((640, 480), intrinsics_matrix(615.5, 615.2, 328.3, 251.8)),  # already standard: unchanged
     ],
 )
 def test_standardize_image_keeps_content_aligned(size, K):
@@ -257,31 +257,35 @@ def test_standardize_image_keeps_content_aligned(size, K):
 
 def test_standardize_image_grayscale_and_uint8():
     img = np.full((360, 640), 255, np.uint8)
-    out, _ = standardize_image(img, intrinsics(500, 500, 320, 180), (640, 480))
+    out, _ = standardize_image(img, intrinsics_matrix(500, 500, 320, 180), (640, 480))
     assert out.shape == (480, 640) and out.dtype == np.uint8
     assert out[:360].min() == 255 and out[360:].max() == 0
 
 
-# ---- check_intrinsics -----------------------------------------------------------------------
+# ---- check_K ---------------------------------------------------------------------------------
 
 
-def test_check_intrinsics_accepts_real_cameras():
-    check_intrinsics(intrinsics(615.52, 615.22, 328.26, 251.79), 640, 480)
-    check_intrinsics(intrinsics(399.66, 399.50, 319.90, 244.06).tolist(), 640, 480)
+REAL_CAMERAS = [intrinsics_matrix(615.52, 615.22, 328.26, 251.79), intrinsics_matrix(399.66, 399.5, 319.9, 244.06)]
+
+
+@pytest.mark.parametrize("K", REAL_CAMERAS)
+def test_check_K_accepts_real_cameras(K):  # noqa: N802
+    out = check_K(K.tolist(), (640, 480))
+    assert out.dtype == np.float64 and np.array_equal(out, K)
 
 
 @pytest.mark.parametrize(
     ("K", "size", "pattern"),
     [
-        (intrinsics(-600, 600, 320, 240), (640, 480), "focal lengths must be positive"),
-        (intrinsics(600, 0, 320, 240), (640, 480), "focal lengths must be positive"),
-        (intrinsics(600, 600, np.nan, 240), (640, 480), "finite"),
-        (np.eye(4), (640, 480), "finite fx"),
-        (intrinsics(1200, 1200, 960, 540), (640, 480), "principal point .* outside the 640x480"),
-        (intrinsics(600, 600, 320, -2), (640, 480), "check its resolution"),
+        (intrinsics_matrix(-600, 600, 320, 240), (640, 480), "focal lengths must be positive"),
+        (intrinsics_matrix(600, 0, 320, 240), (640, 480), "focal lengths must be positive"),
+        (intrinsics_matrix(600, 600, np.nan, 240), (640, 480), "finite"),
+        (np.eye(4), (640, 480), "3x3 camera matrix"),
+        (intrinsics_matrix(1200, 1200, 960, 540), (640, 480), "principal point .* outside the 640x480"),
+        (intrinsics_matrix(600, 600, 320, -2), (640, 480), "calibrated at 640x480"),
     ],
 )
-def test_check_intrinsics_errors(K, size, pattern):
+def test_check_K_errors(K, size, pattern):  # noqa: N802
     with pytest.raises(Monose3Error, match=pattern) as info:
-        check_intrinsics(K, *size, source="cam.json")
-    assert str(info.value).startswith("cam.json:")
+        check_K(K, size, source="cam.json", plausible=False)
+    assert str(info.value).startswith("cam.json")

@@ -4,10 +4,10 @@ import pytest
 import torch
 from conftest import TINY_NET
 
-from monose3.checkpoint import export_model, load_model, read_checkpoint, save_checkpoint
-from monose3.config import get_preset
 from monose3.errors import Monose3Error
-from monose3.network import Denoiser
+from monose3.method.config import get_preset
+from monose3.method.denoiser import Denoiser
+from monose3.training.checkpoints import export_model, load_model, read_checkpoint, save_checkpoint
 
 
 @pytest.fixture

@@ -3,19 +3,11 @@ import math
 import pytest
 import torch
 
-from monose3.config import DiffusionConfig
-from monose3.diffusion import (
-    FixPerNoiser,
-    NoiseSchedule,
-    VisDiffNoiser,
-    base_frame,
-    centroid_frame,
-    ddim_step,
-    denormalize_pose,
-    diffuse_normalized,
-    normalize_pose,
-)
-from monose3.se3 import euler_xyz_to_matrix, make_pose, rotation_angle
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
+from monose3.method.config import DiffusionConfig
+from monose3.method.pose_space import base_frame, centroid_frame, denormalize_pose, normalize_pose
+from monose3.method.scheduler import FixPerNoiser, NoiseSchedule, VisDiffNoiser, ddim_step, diffuse_normalized
 
 
 def random_poses(n: int, gen: torch.Generator) -> torch.Tensor:

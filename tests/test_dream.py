@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from monose3.dream import (
+from monose3.data.dream import (
     UNREAL_TO_OPENCV,
     DreamDataset,
     Frame,

@@ -5,12 +5,12 @@ import pytest
 import torch
 from conftest import TINY_NET
 
-from monose3.config import get_preset
-from monose3.diffusion import centroid_frame
-from monose3.dream import open_dataset
-from monose3.estimator import INIT_BOX_FRACTION, PoseEstimator
-from monose3.network import Denoiser
-from monose3.se3_average import rotation_angle
+from monose3.data.dream import open_dataset
+from monose3.geometry.rotations import rotation_angle
+from monose3.method.config import get_preset
+from monose3.method.denoiser import Denoiser
+from monose3.method.estimator import INIT_BOX_FRACTION, PoseEstimator
+from monose3.method.pose_space import centroid_frame
 
 
 @pytest.fixture(scope="module")

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from conftest import TINY_NET, save_tiny_checkpoint
 
-from monose3.cli import main
-from monose3.config import get_preset
-from monose3.dream import open_dataset
-from monose3.estimator import PoseEstimator
-from monose3.evaluate import evaluate_dataset
-from monose3.metrics import add_per_frame
-from monose3.network import Denoiser
+from monose3.apps.cli import main
+from monose3.apps.evaluate import evaluate_dataset
+from monose3.data.dream import open_dataset
+from monose3.method.config import get_preset
+from monose3.method.denoiser import Denoiser
+from monose3.method.estimator import PoseEstimator
+from monose3.report.metrics import add_per_frame
 
 
 @pytest.fixture(scope="module")

@@ -10,10 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from monose3 import cli
-from monose3.dream import DreamDataset
-from monose3.errors import Monose3Error
-from monose3.generate import (
+from monose3.apps import cli
+from monose3.data.dream import DreamDataset
+from monose3.data.scenes import (
     PROFILES,
     BackgroundSource,
     frame_rng,
@@ -21,6 +20,7 @@ from monose3.generate import (
     sample_scene,
     save_preview_grid,
 )
+from monose3.errors import Monose3Error
 from monose3.robot import RobotModel
 
 SIZE = (320, 240)

@@ -5,16 +5,9 @@ import numpy as np
 import pytest
 import yaml
 
+from monose3.data.inputs import check_image_camera, load_camera, load_image, load_joints, load_pose
 from monose3.errors import Monose3Error
-from monose3.inputs import (
-    CameraIntrinsics,
-    check_image_camera,
-    load_camera,
-    load_image,
-    load_joints,
-    load_pose,
-    scale_camera,
-)
+from monose3.geometry.camera import Intrinsics, scale_camera
 from monose3.robot import RobotModel
 
 Q = [0.1, -0.5, 0.2, -2.0, 0.3, 1.5, 0.7]
@@ -123,7 +116,7 @@ REALSENSE = dict(fx=615.52, fy=615.22, cx=328.26, cy=251.79, width=640, height=4
 @pytest.mark.parametrize("suffix", [".json", ".yaml"])
 def test_load_camera_ours(tmp_path, suffix):
     cam = load_camera(write(tmp_path / f"cam{suffix}", REALSENSE))
-    assert cam == CameraIntrinsics(**REALSENSE)
+    assert cam == Intrinsics(**REALSENSE)
     np.testing.assert_allclose(cam.K, [[615.52, 0, 328.26], [0, 615.22, 251.79], [0, 0, 1]])
     assert load_camera(write(tmp_path / "round.json", cam.to_dict())) == cam
 
@@ -140,12 +133,12 @@ def test_load_camera_dream(tmp_path):
         ]
     }
     cam = load_camera(write(tmp_path / "_camera_settings.json", settings))
-    assert cam == CameraIntrinsics(399.66, 399.50, 319.9, 244.06, 640, 480)
+    assert cam == Intrinsics(399.66, 399.50, 319.9, 244.06, 640, 480)
 
 
 def test_load_camera_ros_variants(tmp_path):
     K = [525.0, 0.0, 319.5, 0.0, 525.0, 239.5, 0.0, 0.0, 1.0]
-    expected = CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    expected = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
     ros1 = {"header": {"frame_id": "cam"}, "height": 480, "width": 640, "distortion_model": "plumb_bob", "K": K}
     ros2 = {"height": 480, "width": 640, "k": K, "d": [0.0] * 5}
     calib = {
@@ -183,7 +176,7 @@ def test_load_camera_errors(tmp_path):
 
 
 def test_check_image_camera_and_scale():
-    cam = CameraIntrinsics(**REALSENSE)
+    cam = Intrinsics(**REALSENSE)
     check_image_camera(np.zeros((480, 640, 3), np.uint8), cam)
     with pytest.raises(Monose3Error, match=r"1280x960 .* 640x480.*scale_camera"):
         check_image_camera(np.zeros((960, 1280, 3), np.uint8), cam)

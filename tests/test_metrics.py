@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from monose3.errors import Monose3Error
-from monose3.metrics import add_per_frame, auc, format_table, summarize
+from monose3.report.metrics import add_per_frame, auc, format_table, summarize
 
 
 def reference_auc(adds, max_threshold=0.1, step=1e-5):

@@ -1,20 +1,12 @@
 import pytest
 import torch
 
-from monose3.config import Config, NetworkConfig, get_preset
-from monose3.network import (
-    DESIGNS,
-    POSE_FEATURES,
-    Denoiser,
-    apply_update,
-    disentangled_loss,
-    pose_features,
-    raw_to_update,
-    timestep_embedding,
-    true_update,
-    update_to_raw,
-)
-from monose3.se3 import euler_xyz_to_matrix, gram_schmidt_6d, make_pose
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_6d_to_matrix
+from monose3.method.config import Config, NetworkConfig, get_preset
+from monose3.method.denoiser import DESIGNS, POSE_FEATURES, Denoiser, pose_features, timestep_embedding
+from monose3.method.loss import disentangled_loss
+from monose3.method.update import apply_update, raw_to_update, true_update, update_to_raw
 
 
 def _poses(n: int, seed: int) -> torch.Tensor:
@@ -31,7 +23,7 @@ def _crop_K(n: int) -> torch.Tensor:
 
 def test_gram_schmidt_gives_proper_rotations():
     r6 = torch.randn(1000, 6, dtype=torch.float64) * 5
-    rot = gram_schmidt_6d(r6)
+    rot = rotation_6d_to_matrix(r6)
     eye = torch.eye(3, dtype=torch.float64).expand(1000, 3, 3)
     assert torch.allclose(rot.transpose(1, 2) @ rot, eye, atol=1e-10)
     assert torch.allclose(torch.det(rot), torch.ones(1000, dtype=torch.float64), atol=1e-10)

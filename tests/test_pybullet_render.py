@@ -8,8 +8,8 @@ import pytest
 
 pytest.importorskip("pybullet")
 
-from monose3.render import RendererPool, projection_matrix  # noqa: E402
 from monose3.robot.jobs import RenderJob  # noqa: E402
+from monose3.robot.reference import RendererPool, projection_matrix  # noqa: E402
 
 FIDELITY_VIEWS = 100
 # Silhouette IoU of monose3's renderer (simplified meshes) against pybullet's TinyRenderer
@@ -31,7 +31,7 @@ def _reference_mask(renderer, job: RenderJob, factor: int) -> np.ndarray:
 
 
 def _in_view_scenes(model, size, n, rng):
-    from monose3.generate import PROFILES, sample_scene
+    from monose3.data.scenes import PROFILES, sample_scene
 
     scenes = []
     while len(scenes) < n:

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from monose3.dream import detect_layout, open_dataset
+from monose3.data.dream import detect_layout, open_dataset
+from monose3.data.robokeygen import RoboKeyGenDataset, find_sequences
 from monose3.errors import Monose3Error
-from monose3.robokeygen import RoboKeyGenDataset, find_sequences
 from monose3.robot import RobotModel
 
 K_D415 = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 180.0], [0.0, 0.0, 1.0]])

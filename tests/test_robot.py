@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from monose3.errors import Monose3Error
+from monose3.geometry.poses import rigid_fit
 from monose3.robot import NUM_SURFACE_POINTS, RobotModel, get_spec, spec_from_files
-from monose3.se3_np import rigid_fit_np
 
 ROBOTS = ("panda", "kuka")
 
@@ -287,7 +287,7 @@ def test_surface_points_move_rigidly_with_their_links(robot, joint, models):
     assert 0 < moved.sum() < len(p0)
     # points of the links before the joint stay put (exactly); the rest turn as one rigid body
     child = model._joint_by_name[name].child
-    pose, resid = rigid_fit_np(p0[moved], p1[moved])
+    pose, resid = rigid_fit(p0[moved], p1[moved])
     assert resid < 1e-9
     l0, l1 = model.link_poses(np.stack([q0, q1]))[:, model.link_index[child]]
     np.testing.assert_allclose(pose, l1 @ np.linalg.inv(l0), atol=1e-9)

@@ -11,16 +11,9 @@ import numpy as np
 import pytest
 from conftest import look_at
 
-from monose3.calibrate import ImageFrame
-from monose3.checkpoint import save_checkpoint
-from monose3.cli import main
-from monose3.config import get_preset, with_section
-from monose3.dream import write_frame
-from monose3.errors import Monose3Error
-from monose3.estimator import Estimate, PoseEstimator
-from monose3.network import Denoiser
-from monose3.robot.jobs import RenderJob
-from monose3.track import (
+from monose3.data.frames import ImageFrame
+from monose3.apps.cli import main
+from monose3.apps.track import (
     MODE_FULL,
     MODE_TRACK,
     load_joints_csv,
@@ -29,7 +22,14 @@ from monose3.track import (
     track_sequence,
     video_frames,
 )
-from monose3.viz import save_animation
+from monose3.data.dream import write_frame
+from monose3.errors import Monose3Error
+from monose3.method.config import get_preset, with_section
+from monose3.method.denoiser import Denoiser
+from monose3.method.estimator import Estimate, PoseEstimator
+from monose3.report.figures import save_animation
+from monose3.robot.jobs import RenderJob
+from monose3.training.checkpoints import save_checkpoint
 
 SIZE = (160, 120)
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])

@@ -13,12 +13,12 @@ import pytest
 import torch
 from conftest import TINY_NET
 
-from monose3.checkpoint import read_checkpoint
-from monose3.cli import main
-from monose3.config import get_preset, with_section
-from monose3.dream import open_dataset
+from monose3.apps.cli import main
+from monose3.data.dream import open_dataset
 from monose3.errors import Monose3Error
-from monose3.network import DESIGNS, Denoiser
+from monose3.method.config import get_preset, with_section
+from monose3.method.denoiser import DESIGNS, Denoiser
+from monose3.training.checkpoints import read_checkpoint
 from monose3.training.loop import BatchMaker, Sources, learning_rate, train, train_step
 from monose3.training.samples import GlobalSampleSampler
 from monose3.training.shards import SHARD_BYTES, read_shards, split_state, write_shards
@@ -214,7 +214,7 @@ def test_a_killed_run_keeps_its_last_shards(tmp_path):
 def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
-           "-m", "monose3.cli", *_train_args(tiny_dream, tmp_path, "--steps", "2")]  # fmt: skip
+           "-m", "monose3.apps.cli", *_train_args(tiny_dream, tmp_path, "--steps", "2")]  # fmt: skip
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert read_checkpoint(tmp_path / "checkpoint.pt")["step"] == 2
@@ -222,7 +222,7 @@ def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
 
 @pytest.mark.parametrize("design", DESIGNS)
 def test_every_design_trains_and_estimates(frames, design):
-    from monose3.estimator import PoseEstimator
+    from monose3.method.estimator import PoseEstimator
 
     config = with_section(tiny_config(rot_weight=3.0), "network", design=design)
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 from conftest import save_tiny_checkpoint
 
-from monose3 import validation
 from monose3.api import estimate_pose, load_estimator
-from monose3.cli import main
-from monose3.dream import open_dataset
+from monose3.apps.cli import main
+from monose3.data import validation
+from monose3.data.dream import open_dataset
 from monose3.errors import Monose3Error
-from monose3.metrics import summarize
+from monose3.report.metrics import summarize
 from monose3.robot import RobotModel
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -228,7 +228,7 @@ def test_checkpoint_folder_is_named_as_a_folder(base, via, capsys):
 def _run_without_torch(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     """``monose3 ARGS`` in a fresh interpreter that fails if torch or pybullet got imported."""
     code = (
-        "import sys\nfrom monose3.cli import main\n"
+        "import sys\nfrom monose3.apps.cli import main\n"
         "try:\n    rc = main(sys.argv[1:])\nexcept SystemExit as e:\n    rc = e.code or 0\n"
         "heavy = [m for m in ('torch', 'pybullet') if m in sys.modules]\n"
         "sys.exit(99 if heavy else rc)\n"
@@ -377,7 +377,7 @@ def test_plausibility_limits_are_documented_numbers():
 
 @pytest.mark.parametrize("via", ["api", "cli"])
 def test_generated_folders_nominal_camera_is_refused_and_the_frame_json_accepted(tiny_dream, base, via, capsys):
-    from monose3.inputs import load_camera
+    from monose3.data.inputs import load_camera
 
     d, _ = base
     frame = open_dataset(tiny_dream, "panda")[0]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from monose3.errors import Monose3Error
-from monose3.viz import (
+from monose3.report.figures import (
     denoising_strip,
     draw_overlay,
     image_grid,

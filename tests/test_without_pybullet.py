@@ -25,7 +25,7 @@ SCRIPT = textwrap.dedent(
     """
     import sys
     from pathlib import Path
-    from monose3.cli import main
+    from monose3.apps.cli import main
 
     out = Path(sys.argv[1])
     assert main(["demo", "--out", str(out / "demo")]) == 0

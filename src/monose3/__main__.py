@@ -2,6 +2,6 @@
 
 import sys
 
-from monose3.cli import main
+from monose3.apps.cli import main
 
 sys.exit(main())

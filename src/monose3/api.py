@@ -11,13 +11,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from monose3 import atomic, validation
-from monose3.checkpoint import load_model
+from monose3 import atomic
+from monose3.data import validation
 from monose3.errors import Monose3Error
-from monose3.estimator import Estimate, PoseEstimator
+from monose3.method.estimator import Estimate, PoseEstimator
+from monose3.report.figures import draw_overlay, save_image
 from monose3.robot import get_spec
 from monose3.robot.renderer import RenderJob, RobotRenderer
-from monose3.viz import draw_overlay, save_image
+from monose3.training.checkpoints import load_model
+from monose3.training.formats import check_checkpoint
 
 ASSETS = Path(__file__).parent / "assets"
 DEFAULT_CHECKPOINT = ASSETS / "panda_cpu.pt"
@@ -42,7 +44,7 @@ def load_estimator(
 
     if robot is not None:
         get_spec(robot)  # an unknown robot name fails here, before any loading
-    validation.check_checkpoint(checkpoint, robot)  # a folder, another robot: refused before torch.load
+    check_checkpoint(checkpoint, robot)  # a folder, another robot: refused before torch.load
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     model, config = load_model(checkpoint or default_checkpoint(), robot=robot, device=device)
@@ -111,7 +113,7 @@ def estimate_pose(
 ) -> PoseResult:
     """Camera-from-base for one RGB image.
 
-    ``image``: ``H x W x 3`` uint8 RGB (``monose3.inputs.load_image`` reads a file); ``joints``:
+    ``image``: ``H x W x 3`` uint8 RGB (``monose3.data.inputs.load_image`` reads a file); ``joints``:
     ``{name: radians}``, or the arm's values in URDF order (7 for the Panda; 8 with the
     gripper), as a list or an array of shape ``[n]`` or ``[1, n]`` (``load_joints`` reads a
     file); ``K``: the 3x3 intrinsics of this image in pixels (``load_camera(path).K``). With
@@ -120,7 +122,7 @@ def estimate_pose(
     ``prior``: an approximate camera-from-base in metres (e.g. a previous calibration) to
     refine, from ``InferenceConfig.prior_t``, instead of RoboPose's initialisation.
 
-    Every input goes through :mod:`monose3.validation` first (the same checks as ``monose3
+    Every input goes through :mod:`monose3.data.validation` first (the same checks as ``monose3
     estimate``); a bad one raises Monose3Error, as does an estimate that puts the robot outside
     the image."""
     image, joints, K, prior, chains = validation.check_estimate_inputs(
@@ -198,7 +200,7 @@ def format_pose(result: PoseResult) -> str:
 
 
 def run_estimate(args: argparse.Namespace) -> int:
-    from monose3.commands import check_estimate
+    from monose3.apps.arguments import check_estimate
 
     inputs = getattr(args, "_checked", None) or check_estimate(args)  # all of it before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot)

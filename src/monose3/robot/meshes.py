@@ -215,11 +215,11 @@ def resolve_mesh(filename: str, urdf_dir: Path) -> Path:
 
 def urdf_origin(elem: ET.Element | None) -> np.ndarray:
     """The 4x4 transform of a URDF ``<origin rpy xyz>`` element (identity when absent)."""
-    from monose3.se3_np import rpy_to_matrix_np
+    from monose3.geometry.rotations import euler_xyz_to_matrix
 
     pose = np.eye(4)
     if elem is not None:
-        pose[:3, :3] = rpy_to_matrix_np(np.array(elem.get("rpy", "0 0 0").split(), float))
+        pose[:3, :3] = euler_xyz_to_matrix(np.array(elem.get("rpy", "0 0 0").split(), float))
         pose[:3, 3] = np.array(elem.get("xyz", "0 0 0").split(), float)
     return pose
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from monose3.errors import Monose3Error
+from monose3.geometry.rotations import rotvec_to_matrix
 from monose3.robot.meshes import (
     RobotMesh,
     Visual,
@@ -25,7 +26,6 @@ from monose3.robot.meshes import (
     parse_visuals,
     urdf_origin,
 )
-from monose3.se3_np import axis_angle_to_matrix_np
 
 NUM_SURFACE_POINTS = 2000
 
@@ -294,7 +294,7 @@ class RobotModel:
         for j in self._order:
             motion = np.broadcast_to(np.eye(4), (batch, 4, 4)).copy()
             if j.kind in ("revolute", "continuous"):
-                motion[:, :3, :3] = axis_angle_to_matrix_np(j.axis / np.linalg.norm(j.axis), value[j.name])
+                motion[:, :3, :3] = rotvec_to_matrix((j.axis / np.linalg.norm(j.axis)) * value[j.name][:, None])
             elif j.kind == "prismatic":
                 motion[:, :3, 3] = value[j.name][:, None] * j.axis
             poses[:, self.link_index[j.child]] = poses[:, self.link_index[j.parent]] @ j.origin @ motion

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from monose3.camera import project
+from monose3.geometry.camera import project
 
 NEAR = 0.01  # metres: triangles with a vertex closer than this are not drawn
 DEPTH_UNIT = 1e-5  # metres per z-buffer step (40 m range in 22 bits)

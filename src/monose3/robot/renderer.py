@@ -4,7 +4,7 @@
 returns RGB ``[B, 3, H, W]`` in [0, 1] on black, the robot mask and the depth, on the device
 of its tensor inputs. Poses are camera-from-base in OpenCV axes (x right, y down, z forward),
 intrinsics are pixel-centre OpenCV intrinsics. One implementation serves training samples,
-the estimator, tracking, overlays and synthetic scenes; pybullet (``monose3.render``) stays
+the estimator, tracking, overlays and synthetic scenes; pybullet (``monose3.robot.reference``) stays
 only as an independent reference.
 """
 

@@ -22,14 +22,15 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from monose3.checkpoint import read_checkpoint, read_weights, save_checkpoint
-from monose3.config import Config
-from monose3.diffusion import make_noiser
+from monose3.data.scenes import get_profile
 from monose3.errors import Monose3Error
-from monose3.generate import get_profile
-from monose3.network import Denoiser, disentangled_loss, pose_input
+from monose3.method.config import Config
+from monose3.method.denoiser import Denoiser, pose_input
+from monose3.method.loss import disentangled_loss
+from monose3.method.scheduler import make_noiser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
+from monose3.training.checkpoints import read_checkpoint, read_weights, save_checkpoint
 from monose3.training.samples import (
     FrameDataset,
     GlobalSampleSampler,
@@ -348,7 +349,7 @@ def _running_mean(values: list[float], width: int) -> list[float]:
 
 def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path | None:
     """The loss of a run (``log.csv``) and its three parts of Eq. 10 against samples seen."""
-    from monose3.viz import plot_curves
+    from monose3.report.figures import plot_curves
 
     with open(log_csv) as fh:
         rows = list(csv.DictReader(fh))

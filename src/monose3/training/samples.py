@@ -18,12 +18,13 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
-from monose3.camera import standardize_image
-from monose3.config import Config
-from monose3.diffusion import PoseNoiser, base_frame, centroid_frame
+from monose3.geometry.camera import standardize_image
+from monose3.method.config import Config
+from monose3.method.pose_space import base_frame, centroid_frame
+from monose3.method.render_compare import crop_batch, crop_geometry
+from monose3.method.scheduler import PoseNoiser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
-from monose3.views import crop_batch, crop_geometry
 
 
 def step_generator(seed: int, step: int, device: torch.device | str = "cpu") -> torch.Generator:

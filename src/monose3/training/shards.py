@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from monose3.errors import Monose3Error
-from monose3.training import SHARD_INDEX as INDEX
+from monose3.training.formats import SHARD_INDEX as INDEX
 
 FORMAT = "monose3-shards-v1"
 SHARD_BYTES = 15 * 2**20  # under the 16 MiB a lent machine returns per file, with room for pickling

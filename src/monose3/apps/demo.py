@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from monose3.api import ASSETS, estimate_pose, format_pose, load_estimator, overlay_image, write_pose_files
-from monose3.inputs import load_camera, load_image, load_joints
-from monose3.metrics import add_per_frame
-from monose3.se3_average import rotation_angle
-from monose3.viz import save_image
+from monose3.data.inputs import load_camera, load_image, load_joints
+from monose3.geometry.rotations import rotation_angle
+from monose3.report.figures import save_image
+from monose3.report.metrics import add_per_frame
 
 SAMPLE = ASSETS / "sample"
 
@@ -29,7 +29,7 @@ def pose_errors(robot, joints: np.ndarray, pred: np.ndarray, truth: np.ndarray) 
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from monose3.commands import check_demo
+    from monose3.apps.arguments import check_demo
 
     checked = getattr(args, "_checked", None) or check_demo(args)
     image = load_image(SAMPLE / "image.jpg")

@@ -9,10 +9,10 @@ from typing import Any
 
 import torch
 
-from monose3.config import Config
 from monose3.errors import Monose3Error
-from monose3.network import Denoiser
-from monose3.validation import CHECKPOINT_FORMAT as FORMAT
+from monose3.method.config import Config
+from monose3.method.denoiser import Denoiser
+from monose3.training.formats import CHECKPOINT_FORMAT as FORMAT
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:

@@ -2,7 +2,7 @@
 ``Monose3Error`` (problem and fix), run before any model is loaded.
 
 This module imports neither torch nor pybullet (only numpy, the file loaders of
-:mod:`monose3.inputs` and the URDF parser of :mod:`monose3.robot`), so a command can refuse a
+:mod:`monose3.data.inputs` and the URDF parser of :mod:`monose3.robot`), so a command can refuse a
 bad input in well under a second. What is checked:
 
 * joints: every layout the README documents (``{name: radians}``, a list of 7 or 8 values, a
@@ -10,7 +10,7 @@ bad input in well under a second. What is checked:
 * images: an ``H x W x 3`` uint8 RGB array (grey, RGBA and float arrays are refused with the
   conversion to use, since a float image's range cannot be guessed); too small or uniform
   (all black) images are refused. BGR cannot be told from RGB: it is the caller's job
-  (``monose3.inputs.load_image`` returns RGB);
+  (``monose3.data.inputs.load_image`` returns RGB);
 * intrinsics: a 3x3 K with positive focal lengths that are plausible for the image's width
   (``FOCAL_RANGE``), a principal point near the image centre (a K for another image size puts
   it elsewhere);
@@ -24,31 +24,22 @@ bad input in well under a second. What is checked:
 
 from __future__ import annotations
 
-import json
 import os
-import pickle
-import zipfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from monose3.data.inputs import check_image_camera, load_joints, pose_from_obj
 from monose3.errors import Monose3Error
-from monose3.inputs import CameraIntrinsics, check_image_camera, load_joints, pose_from_obj
-from monose3.robot import RobotModel, get_spec
-from monose3.training import SHARD_INDEX
+from monose3.geometry.camera import Intrinsics, check_K
+from monose3.robot import RobotModel
 
-CHECKPOINT_FORMAT = "monose3-checkpoint-v1"
-BUNDLED_CHECKPOINT = Path(__file__).parent / "assets" / "panda_cpu.pt"
 SAMPLERS = ("revdiff", "directreg")
 
 # The smallest image side the network can see a robot in.
 MIN_IMAGE_SIDE = 32
-# fx and fy in multiples of the image width: 0.1 x is a 157 deg field of view, 10 x a 5.7 deg one.
-FOCAL_RANGE = (0.1, 10.0)
-# The principal point may sit at most this fraction of the image size away from the centre.
-PRINCIPAL_POINT_OFFSET = 0.22
 # A prior that puts the robot's keypoints (mean) closer or further than this is refused.
 PRIOR_DISTANCE_M = (0.1, 10.0)
 
@@ -121,55 +112,7 @@ def check_image(image: Any, source: str = "image", content: bool = True) -> np.n
 # ---- intrinsics --------------------------------------------------------------------------------
 
 
-def check_K(K: Any, image_size: tuple[int, int], source: str = "K", plausible: bool = True) -> np.ndarray:  # noqa: N802
-    """A float64 3x3 camera matrix for an image of ``image_size`` = (width, height).
-
-    ``plausible``: also refuse focal lengths outside ``FOCAL_RANGE`` x width and a principal
-    point far from the centre (the signs of a K for another image size, or of other units)."""
-    try:
-        K = np.asarray(K, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise Monose3Error(f"{source} must be a 3x3 camera matrix of numbers, got {K!r}") from None
-    if K.shape != (3, 3):
-        raise Monose3Error(f"{source} must be a 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K.shape}")
-    if not np.isfinite(K).all():
-        raise Monose3Error(f"{source} contains NaN or infinity; give finite intrinsics in pixels")
-    if not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 1e-9:
-        raise Monose3Error(f"{source} must have the form [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]; got rows {K.tolist()}")
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if abs(K[0, 1]) > 1e-6 * max(abs(fx), 1.0):
-        raise Monose3Error(f"{source} has non-zero skew {K[0, 1]:g}; give a zero-skew calibration")
-    if fx <= 0 or fy <= 0:
-        raise Monose3Error(
-            f"{source}: focal lengths must be positive pixels (fx={fx:g}, fy={fy:g}); fix the calibration"
-        )
-    w, h = int(image_size[0]), int(image_size[1])
-    if not plausible:
-        return K
-    lo, hi = FOCAL_RANGE
-    for name, f in (("fx", fx), ("fy", fy)):
-        if not lo * w <= f <= hi * w:
-            raise Monose3Error(
-                f"{source}: {name} = {f:g} px is implausible for a {w}-pixel-wide image (expected "
-                f"{lo * w:g}-{hi * w:g}, {lo:g}-{hi:g} x the width); give the focal length in pixels, "
-                f"calibrated at {w}x{h}"
-            )
-    if not (0 < cx < w and 0 < cy < h):
-        raise Monose3Error(
-            f"{source}: principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image; "
-            f"give intrinsics calibrated at {w}x{h}"
-        )
-    off = PRINCIPAL_POINT_OFFSET
-    if abs(cx - (w - 1) / 2) > off * w or abs(cy - (h - 1) / 2) > off * h:
-        raise Monose3Error(
-            f"{source}: principal point ({cx:g}, {cy:g}) is far from the centre of the {w}x{h} image, the sign of "
-            f"a K for another image size; give intrinsics calibrated at {w}x{h} "
-            "(for a resized image: monose3.inputs.scale_camera)"
-        )
-    return K
-
-
-def check_camera(camera: CameraIntrinsics, image: np.ndarray, source: str = "camera") -> np.ndarray:
+def check_camera(camera: Intrinsics, image: np.ndarray, source: str = "camera") -> np.ndarray:
     """The camera file's intrinsics against the image: same size, plausible K. Returns K."""
     check_image_camera(image, camera)
     return check_K(camera.K, camera.size, source)
@@ -329,72 +272,3 @@ def check_input_dir(path: str | Path, option: str) -> Path:
     if not p.is_dir():
         raise Monose3Error(f"{option} {p} is not a folder; give the folder that holds the frames")
     return p
-
-
-# ---- checkpoints (read without torch) ---------------------------------------------------------
-
-
-class _PeekUnpickler(pickle.Unpickler):
-    """Reads a torch checkpoint's dictionary with every tensor replaced by None."""
-
-    def find_class(self, module: str, name: str):  # noqa: ANN201
-        if module.startswith("torch") or module == "numpy" or module.startswith("numpy."):
-            return lambda *a, **k: None
-        if module == "collections" and name == "OrderedDict":
-            import collections
-
-            return collections.OrderedDict
-        raise pickle.UnpicklingError(f"unexpected {module}.{name}")
-
-    def persistent_load(self, pid):  # noqa: ANN001, ANN201
-        return None
-
-
-def checkpoint_robot(path: str | Path | None) -> str | None:
-    """The robot a checkpoint was trained for, read without torch; None when the file is not a
-    zip checkpoint this reader understands (then the torch loader decides)."""
-    p = BUNDLED_CHECKPOINT if path is None else Path(path)
-    if not p.exists():
-        if path is None:
-            raise Monose3Error(f"the bundled model {p.name} is missing; reinstall monose3 or pass --checkpoint")
-        raise Monose3Error(f"checkpoint not found: {p} (train one with `monose3 train` or omit --checkpoint)")
-    index = p if p.name == SHARD_INDEX else p / SHARD_INDEX
-    if index.is_file():  # a shard set written by `monose3 train`
-        try:
-            robot = json.loads(index.read_text())["config"]["robot"]
-        except (ValueError, KeyError, TypeError):
-            raise Monose3Error(f"{index} is not a monose3 shard index; rewrite it with `monose3 train`") from None
-        return robot if isinstance(robot, str) else None
-    if p.is_dir():
-        inside = sorted(p.glob("*.pt"))
-        hint = f" such as {inside[0]}" if inside else ""
-        raise Monose3Error(
-            f"checkpoint {p} is a folder without weights.json; give a run folder or a checkpoint file (.pt){hint}"
-        )
-    try:
-        with zipfile.ZipFile(p) as z:
-            name = next(n for n in z.namelist() if n.endswith("/data.pkl") or n == "data.pkl")
-            with z.open(name) as fh:
-                state = _PeekUnpickler(fh).load()
-    except (zipfile.BadZipFile, StopIteration, pickle.UnpicklingError, EOFError, OSError, AttributeError, TypeError):
-        return None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise Monose3Error(f"{p} is not a monose3 checkpoint (expected format {CHECKPOINT_FORMAT})")
-    config = state.get("config")
-    robot = config.get("robot") if isinstance(config, dict) else None
-    return robot if isinstance(robot, str) else None
-
-
-def check_checkpoint(path: str | Path | None, robot: str | None = None) -> str | None:
-    """The robot name to check inputs against before the model loads: ``robot`` (which must
-    exist and match the checkpoint's) or the checkpoint's own. None: not known until loading."""
-    if robot is not None:
-        get_spec(robot)
-    found = checkpoint_robot(path)
-    if robot is not None and found is not None and found != robot:
-        name = Path(path).name if path is not None else BUNDLED_CHECKPOINT.name
-        raise Monose3Error(
-            f"checkpoint {name} was trained for robot {found!r}, not {robot!r}; use a {robot} checkpoint or "
-            f"--robot {found}"
-        )
-    return robot or found

@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from monose3.dream import DreamDataset, write_camera_settings, write_frame
+from monose3.data.dream import DreamDataset, write_camera_settings, write_frame
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel, RobotSpec, get_spec, spec_from_files
 from monose3.robot.jobs import RENDERERS, Lighting, RenderJob
@@ -503,7 +503,7 @@ def make_renderer(model: RobotModel, backend: str):
         from monose3.robot.renderer import RobotRenderer
 
         return _TorchJobs(RobotRenderer(model))
-    from monose3.render import Renderer
+    from monose3.robot.reference import Renderer
 
     return Renderer(model, backend)
 
@@ -713,7 +713,7 @@ def generate_dataset(
     if backend not in RENDERERS:
         raise Monose3Error(f"unknown renderer {backend!r}; choose one of {', '.join(RENDERERS)}")
     if backend != "torch":
-        from monose3.render import resolve_backend
+        from monose3.robot.reference import resolve_backend
 
         resolve_backend(backend)  # a missing pybullet fails here, before any work
     job = _Job(str(out), int(seed), (w, h), prof, spec, tuple(str(p) for p in bg_files), backend)
@@ -789,8 +789,8 @@ def save_preview_grid(
 # ---- command line ---------------------------------------------------------------------------
 
 
-# The options live in the torch-free monose3.commands (fast --help and input errors).
-from monose3.commands import add_generate_arguments  # noqa: E402, F401
+# The options live in the torch-free monose3.apps.arguments (fast --help and input errors).
+from monose3.apps.arguments import add_generate_arguments  # noqa: E402, F401
 
 
 def run_generate(args: argparse.Namespace) -> int:

@@ -1,4 +1,4 @@
-"""RoboKeyGen real sequences (RealSense-Franka, AzureKinect-Franka) as :class:`~monose3.dream.Frame`.
+"""RoboKeyGen real sequences (RealSense-Franka, AzureKinect-Franka) as :class:`~monose3.data.dream.Frame`.
 
 Layout, as RoboKeyGen's own loaders read it: one folder per sequence with ``NNNN_color.png``
 and ``NNNN_meta.json`` per frame. The meta file is a JSON list whose element 0 holds
@@ -29,19 +29,19 @@ from pathlib import Path
 
 import numpy as np
 
-from monose3.dream import (
+from monose3.data.dream import (
     CAMERA_SETTINGS,
     FrameError,
     _FrameSequence,
     _Parsed,
     _progress,
     build_index,
-    intrinsics_matrix,
     match_keypoints,
     parse_joints,
     read_camera_settings,
 )
 from monose3.errors import Monose3Error
+from monose3.geometry.camera import intrinsics_matrix
 from monose3.robot import RobotModel, RobotSpec
 
 META_SUFFIX = "_meta.json"
@@ -126,7 +126,7 @@ def _pick_key(entries: list, candidates: tuple[str, ...]) -> str:
 
 
 class RoboKeyGenDataset(_FrameSequence):
-    """RoboKeyGen sequence folder(s) as a sequence of :class:`~monose3.dream.Frame`.
+    """RoboKeyGen sequence folder(s) as a sequence of :class:`~monose3.data.dream.Frame`.
 
     ``folder`` is one sequence (``NNNN_color.png`` + ``NNNN_meta.json``) or a folder of
     sequences; with several sequences frame names are ``sequence/NNNN``. Unusable frames are

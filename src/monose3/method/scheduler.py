@@ -13,47 +13,10 @@ from typing import Protocol
 
 import torch
 
-from monose3.config import DiffusionConfig
-from monose3.se3 import euler_xyz_to_matrix, gram_schmidt_6d, make_pose, rotation_to_6d
-
-
-def centroid_frame(pose: torch.Tensor, centroid: torch.Tensor) -> torch.Tensor:
-    """Camera-from-centroid pose from camera-from-base ``[B, 4, 4]`` and base-frame centroids ``[B, 3]``."""
-    out = pose.clone()
-    out[:, :3, 3] = pose[:, :3, 3] + (pose[:, :3, :3] @ centroid[:, :, None])[..., 0]
-    return out
-
-
-def base_frame(pose_ref: torch.Tensor, centroid: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`centroid_frame`: camera-from-base from camera-from-centroid."""
-    out = pose_ref.clone()
-    out[:, :3, 3] = pose_ref[:, :3, 3] - (pose_ref[:, :3, :3] @ centroid[:, :, None])[..., 0]
-    return out
-
-
-def normalize_pose(pose: torch.Tensor, K: torch.Tensor, image_size: torch.Tensor, c_z: float) -> torch.Tensor:
-    """Monocular normalisation, Eq. 4: ``[B, 4, 4]`` to ``[B, 9]`` = (r1, r2, f tx/(w tz), f ty/(h tz), tz - c_z).
-
-    r1, r2 are the first two columns of R; fx is used for x and fy for y; ``image_size`` is
-    ``[B, 2]`` (w, h) of the image that K belongs to.
-    """
-    t = pose[:, :3, 3]
-    tz = t[:, 2]
-    x = K[:, 0, 0] * t[:, 0] / (image_size[:, 0] * tz)
-    y = K[:, 1, 1] * t[:, 1] / (image_size[:, 1] * tz)
-    return torch.cat([rotation_to_6d(pose[:, :3, :3]), torch.stack([x, y, tz - c_z], dim=1)], dim=1)
-
-
-def denormalize_pose(x: torch.Tensor, K: torch.Tensor, image_size: torch.Tensor, c_z: float) -> torch.Tensor:
-    """Inverse normalisation, Eq. 6-7: ``[B, 9]`` to ``[B, 4, 4]``.
-
-    Rotation by Gram-Schmidt on (r1, r2) (Eq. 6); tz = z + c_z, tx = w tz x / f, ty = h tz y / f (Eq. 7).
-    """
-    rot = gram_schmidt_6d(x[:, :6])
-    tz = x[:, 8] + c_z
-    tx = image_size[:, 0] * tz * x[:, 6] / K[:, 0, 0]
-    ty = image_size[:, 1] * tz * x[:, 7] / K[:, 1, 1]
-    return make_pose(rot, torch.stack([tx, ty, tz], dim=1))
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import euler_xyz_to_matrix
+from monose3.method.config import DiffusionConfig
+from monose3.method.pose_space import denormalize_pose, normalize_pose
 
 
 class NoiseSchedule:

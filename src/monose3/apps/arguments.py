@@ -1,7 +1,7 @@
 """The ``monose3`` commands' options and their input checks, kept free of torch and pybullet.
 
 Each command has ``add_<name>_arguments(parser)`` (every option with its help text) and
-``check_<name>(args)``, which checks and loads the inputs through :mod:`monose3.validation`
+``check_<name>(args)``, which checks and loads the inputs through :mod:`monose3.data.validation`
 before the implementation module (and with it torch and pybullet) is imported, so ``--help``
 and a bad input answer in well under a second. ``check_<name>`` returns what it loaded (an
 image, frames, ...), which the implementation reuses instead of reading the files again.
@@ -13,9 +13,10 @@ import argparse
 from pathlib import Path
 from types import SimpleNamespace
 
-from monose3 import validation as v
+from monose3.data import validation as v
 from monose3.errors import Monose3Error
 from monose3.robot.jobs import RENDERERS
+from monose3.training.formats import check_checkpoint
 
 CHECKPOINT_HELP = "model checkpoint file (.pt; default: the bundled Panda model)"
 ROBOT_HELP = "robot the checkpoint must be for: panda or kuka (checked before loading)"
@@ -81,12 +82,12 @@ def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def check_estimate(args: argparse.Namespace) -> SimpleNamespace:
-    from monose3.inputs import load_camera, load_image, load_pose
+    from monose3.data.inputs import load_camera, load_image, load_pose
 
     chains = v.check_chains(args.chains, "--chains")
     v.check_sampler(args.sampler)
     out = v.check_output_dir(args.out, "--out")
-    robot = _robot_model(v.check_checkpoint(args.checkpoint, args.robot))
+    robot = _robot_model(check_checkpoint(args.checkpoint, args.robot))
     image = v.check_image(load_image(args.image), args.image)
     camera = load_camera(args.camera)
     K = v.check_camera(camera, image, args.camera)
@@ -121,7 +122,7 @@ def add_demo_arguments(p: argparse.ArgumentParser) -> None:
 def check_demo(args: argparse.Namespace) -> SimpleNamespace:
     chains = v.check_chains(args.chains, "--chains")
     out = v.check_output_dir(args.out, "--out")
-    v.check_checkpoint(args.checkpoint, "panda")
+    check_checkpoint(args.checkpoint, "panda")
     return SimpleNamespace(chains=chains, out=out)
 
 
@@ -161,7 +162,7 @@ def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def check_calibrate(args: argparse.Namespace) -> SimpleNamespace:
-    from monose3.frames import load_frames
+    from monose3.data.frames import load_frames
 
     chains = v.check_chains(args.chains, "--chains")
     v.check_count(args.batch_size, "--batch-size")
@@ -172,7 +173,7 @@ def check_calibrate(args: argparse.Namespace) -> SimpleNamespace:
         raise Monose3Error(f"--consensus-k must be positive, got {args.consensus_k}")
     v.check_input_dir(args.frames, "--frames")
     out = v.check_output_dir(args.out, "--out")
-    robot = _robot_model(v.check_checkpoint(args.checkpoint, args.robot))
+    robot = _robot_model(check_checkpoint(args.checkpoint, args.robot))
     frames = None
     if robot is not None:
         frames = load_frames(args.frames, robot)
@@ -239,18 +240,18 @@ def check_track_args(args: argparse.Namespace) -> None:
 def check_track(args: argparse.Namespace) -> SimpleNamespace:
     check_track_args(args)
     out = v.check_output_dir(args.out, "--out")
-    robot = v.check_checkpoint(args.checkpoint, args.robot)
+    robot = check_checkpoint(args.checkpoint, args.robot)
     frames = video_joints = None
     if args.frames is not None:
         v.check_input_dir(args.frames, "--frames")
         if robot is not None:
-            from monose3.frames import load_frames
+            from monose3.data.frames import load_frames
 
             frames = load_frames(args.frames, _robot_model(robot))
             frames = frames[: args.limit] if args.limit is not None else frames
     else:
-        from monose3.frames import load_joints_csv, load_joints_dir
-        from monose3.inputs import load_camera
+        from monose3.data.frames import load_joints_csv, load_joints_dir
+        from monose3.data.inputs import load_camera
 
         camera = load_camera(args.camera)
         v.check_K(camera.K, camera.size, args.camera)
@@ -356,7 +357,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
 
 def check_train(args: argparse.Namespace) -> SimpleNamespace:
     """Every refusal that needs no model, before anything is built or written; returns the frames."""
-    from monose3.generate import get_profile
+    from monose3.data.scenes import get_profile
     from monose3.robot import get_spec
 
     if args.minutes is not None and not args.minutes > 0:
@@ -372,7 +373,7 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
         raise Monose3Error("--init starts a new run from weights, --resume continues one; pass only one")
     if not args.data and not args.synthetic:
         raise Monose3Error("no training data: pass --data DIR (DREAM folders) and/or --synthetic")
-    from monose3.config import get_preset
+    from monose3.method.config import get_preset
 
     get_preset(args.preset)
     get_spec(args.robot)
@@ -389,10 +390,10 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     for d in args.data:
         v.check_input_dir(d, "--data")
     if args.backgrounds:
-        from monose3.generate import list_backgrounds
+        from monose3.data.scenes import list_backgrounds
 
         list_backgrounds(args.backgrounds)
-    from monose3.train import load_frames
+    from monose3.apps.train import load_frames
 
     return SimpleNamespace(frames=load_frames(args.data, args.robot) if args.data else [])
 
@@ -435,23 +436,23 @@ def check_evaluate(args: argparse.Namespace) -> SimpleNamespace:
         v.check_output_file(args.plot, "--plot", PLOT_SUFFIXES)
     if args.overlays:
         v.check_output_dir(args.overlays, "--overlays")
-    robot = v.check_checkpoint(args.checkpoint)
+    robot = check_checkpoint(args.checkpoint)
     datasets = None
     for d in args.data:
         v.check_input_dir(d, "--data")
     if robot is not None:
-        from monose3.dream import open_dataset
+        from monose3.data.dream import open_dataset
 
         datasets = [open_dataset(d, robot) for d in args.data]
     return SimpleNamespace(datasets=datasets)
 
 
 COMMANDS = {
-    "demo": ("monose3.demo", "estimate the pose on the bundled sample scene and show the error"),
+    "demo": ("monose3.apps.demo", "estimate the pose on the bundled sample scene and show the error"),
     "estimate": ("monose3.api", "estimate camera-from-base from one image, joints and intrinsics"),
-    "calibrate": ("monose3.calibrate", "fuse estimates over many frames from a static camera"),
-    "track": ("monose3.track", "track the pose over a sequence of frames or a video"),
-    "generate": ("monose3.generate", "generate domain-randomised synthetic data in DREAM format"),
-    "train": ("monose3.train", "train the denoising network on DREAM folders or scenes synthesised on the fly"),
-    "evaluate": ("monose3.evaluate", "evaluate a checkpoint on DREAM / RoboKeyGen data (ADD, AUC)"),
+    "calibrate": ("monose3.apps.calibrate", "fuse estimates over many frames from a static camera"),
+    "track": ("monose3.apps.track", "track the pose over a sequence of frames or a video"),
+    "generate": ("monose3.data.scenes", "generate domain-randomised synthetic data in DREAM format"),
+    "train": ("monose3.apps.train", "train the denoising network on DREAM folders or scenes synthesised on the fly"),
+    "evaluate": ("monose3.apps.evaluate", "evaluate a checkpoint on DREAM / RoboKeyGen data (ADD, AUC)"),
 }

@@ -11,16 +11,18 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from monose3.camera import project, standardize_image
-from monose3.config import Config
-from monose3.diffusion import NoiseSchedule, base_frame, centroid_frame, ddim_step, denormalize_pose, normalize_pose
-from monose3.network import Denoiser, apply_update, pose_input, raw_to_update
+from monose3.data.validation import check_batch
+from monose3.geometry.camera import project, standardize_image
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
+from monose3.method.config import Config
+from monose3.method.denoiser import Denoiser, pose_input
+from monose3.method.pose_space import base_frame, centroid_frame, denormalize_pose, normalize_pose
+from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
+from monose3.method.scheduler import NoiseSchedule, ddim_step
+from monose3.method.update import apply_update, raw_to_update
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
-from monose3.se3 import euler_xyz_to_matrix, make_pose
-from monose3.se3_average import rotation_angle
-from monose3.validation import check_batch
-from monose3.views import crop_batch, crop_geometry, image_to_tensor
 
 # RoboPose's fixed initial orientation (camera-from-reference-point): the robot seen from the front.
 INIT_ROTATION = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)

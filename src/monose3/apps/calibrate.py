@@ -10,7 +10,7 @@ the wrong ones are thrown out first instead of averaged in. The pipeline:
 2. reject frames whose estimate puts the robot outside the image ("out of view") and, with
    several chains, those whose chains disagree by more than ``api.UNRELIABLE_MM``
    ("unreliable chains");
-3. fuse the rest robustly (:mod:`monose3.se3_average`: geodesic L1 median of the rotations,
+3. fuse the rest robustly (:mod:`monose3.geometry.averaging`: geodesic L1 median of the rotations,
    geometric median of the translations), reject frames whose translation or rotation lies
    beyond ``median + k * 1.4826 * MAD`` of the residuals to that first fusion ("far from
    consensus"), and fuse the remaining inliers again.
@@ -22,7 +22,7 @@ Input folder (``--frames DIR``), one of:
 * a plain folder::
 
       camera.json          intrinsics {fx, fy, cx, cy, width, height} (or any layout
-                           monose3.inputs.load_camera reads: DREAM settings, ROS CameraInfo;
+                           monose3.data.inputs.load_camera reads: DREAM settings, ROS CameraInfo;
                            camera.yaml works too)
       0000.png             an image (PNG or JPEG: .png, .jpg, .jpeg)
       0000.joints.json     its joint angles: {joint name: radians} (or a list in URDF order;
@@ -55,31 +55,18 @@ import yaml
 
 from monose3 import atomic
 from monose3.api import UNRELIABLE_MM
-from monose3.errors import Monose3Error
-from monose3.frames import (  # noqa: F401 - re-exported: the frame readers used to live here
-    CAMERA_FILES,
-    IMAGE_SUFFIXES,
-    JOINTS_SUFFIXES,
-    ImageFrame,
-    _image_stem,
-    _joints_stem,
-    _natural_key,
+from monose3.data.frames import (
     format_skipped,
-    is_plain_folder,
     load_frames,
     load_images,
-    load_plain_frames,
     skipped_annotations,
 )
+from monose3.errors import Monose3Error
+from monose3.geometry.averaging import pose_residuals, robust_consensus, robust_pose_average
+from monose3.geometry.rotations import matrix_to_quat_xyzw
+from monose3.report.figures import draw_overlay, image_grid, save_image
 from monose3.robot import RobotModel
 from monose3.robot.jobs import RenderJob
-from monose3.se3_average import (
-    pose_residuals,
-    robust_consensus,
-    robust_pose_average,
-)
-from monose3.se3_np import matrix_to_quat_xyzw_np
-from monose3.viz import draw_overlay, image_grid, save_image
 
 log = logging.getLogger("monose3")
 
@@ -260,7 +247,7 @@ class CalibrationResult:
 
 
 def _xyz_quat(pose: np.ndarray) -> list[float]:
-    return [*map(float, pose[:3, 3]), *map(float, matrix_to_quat_xyzw_np(pose[:3, :3]))]
+    return [*map(float, pose[:3, 3]), *map(float, matrix_to_quat_xyzw(pose[:3, :3]))]
 
 
 def _add_mm(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, gt_keypoints: np.ndarray) -> float:
@@ -496,7 +483,7 @@ def overlay_grid(estimator, frames: Sequence, result: CalibrationResult, count: 
 
 def run_calibrate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
-    from monose3.commands import check_calibrate
+    from monose3.apps.arguments import check_calibrate
 
     checked = getattr(args, "_checked", None) or check_calibrate(args)  # inputs read before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +19,7 @@ import numpy as np
 import yaml
 
 from monose3.errors import Monose3Error
+from monose3.geometry.camera import Intrinsics
 from monose3.robot import RobotModel
 
 # A joint value further than this outside its URDF limits is taken as a unit mistake (degrees).
@@ -143,74 +143,6 @@ def load_joints(path_or_obj: str | Path | Mapping[str, Any] | list[Any], robot: 
 # ---- cameras --------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class CameraIntrinsics:
-    """Pinhole intrinsics (OpenCV, pixel-centre convention) and the image size they belong to."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @property
-    def K(self) -> np.ndarray:  # noqa: N802 - the usual name of the matrix
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """``(width, height)`` in pixels."""
-        return (self.width, self.height)
-
-    def to_dict(self) -> dict[str, float | int]:
-        """Our JSON layout, readable by ``load_camera``."""
-        return {
-            "fx": self.fx,
-            "fy": self.fy,
-            "cx": self.cx,
-            "cy": self.cy,
-            "width": self.width,
-            "height": self.height,
-        }
-
-    @classmethod
-    def from_K(cls, K: np.ndarray, width: int, height: int, source: str = "camera") -> CameraIntrinsics:  # noqa: N802
-        """Build and validate from a 3x3 matrix (skew must be zero)."""
-        K = np.asarray(K, dtype=np.float64)
-        if K.shape != (3, 3):
-            raise Monose3Error(f"{source}: the camera matrix must be 3x3 (9 numbers), got shape {K.shape}")
-        if abs(K[0, 1]) > 1e-6 * max(abs(K[0, 0]), 1.0):
-            raise Monose3Error(f"{source}: camera matrix has non-zero skew {K[0, 1]:g}; give a zero-skew calibration")
-        return _make_camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height, source)
-
-
-def _number(value: Any, key: str, source: str) -> float:
-    if not _is_number(value):
-        raise Monose3Error(f"{source}: '{key}' must be a number, got {value!r}")
-    return float(value)
-
-
-def _make_camera(fx: Any, fy: Any, cx: Any, cy: Any, width: Any, height: Any, source: str) -> CameraIntrinsics:
-    """Validate and build; every check names the value that is wrong."""
-    fx, fy, cx, cy = (_number(v, k, source) for v, k in ((fx, "fx"), (fy, "fy"), (cx, "cx"), (cy, "cy")))
-    w, h = _number(width, "width", source), _number(height, "height", source)
-    if not (w.is_integer() and h.is_integer() and w > 0 and h > 0):
-        raise Monose3Error(f"{source}: image width/height must be positive whole pixels, got {width}x{height}")
-    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)):
-        raise Monose3Error(f"{source}: intrinsics must be finite numbers (fx={fx}, fy={fy}, cx={cx}, cy={cy})")
-    if fx <= 0 or fy <= 0:
-        raise Monose3Error(
-            f"{source}: focal lengths must be positive pixels (fx={fx:g}, fy={fy:g}); fix the calibration"
-        )
-    if not (0 < cx < w and 0 < cy < h):
-        raise Monose3Error(
-            f"{source}: principal point ({cx:g}, {cy:g}) lies outside the {int(w)}x{int(h)} image; "
-            "give intrinsics calibrated at this resolution"
-        )
-    return CameraIntrinsics(fx, fy, cx, cy, int(w), int(h))
-
-
 def _require(mapping: Mapping[str, Any], keys: tuple[str, ...], source: str, layout: str) -> None:
     missing = [k for k in keys if k not in mapping]
     if missing:
@@ -231,7 +163,7 @@ def _matrix9(value: Any, key: str, source: str) -> np.ndarray:
     return arr.reshape(3, 3)
 
 
-def camera_from_obj(obj: Any, source: str = "camera") -> CameraIntrinsics:
+def camera_from_obj(obj: Any, source: str = "camera") -> Intrinsics:
     """Intrinsics from an already-parsed file of any supported layout (see ``load_camera``)."""
     if not isinstance(obj, Mapping):
         raise Monose3Error(
@@ -242,7 +174,7 @@ def camera_from_obj(obj: Any, source: str = "camera") -> CameraIntrinsics:
     if isinstance(cam_data, Mapping) and isinstance(cam_data.get("intrinsics"), Mapping):  # a DREAM frame JSON
         intr = cam_data["intrinsics"]
         _require(intr, ("fx", "fy", "cx", "cy", "width", "height"), source, "a DREAM frame's camera_data.intrinsics")
-        return _make_camera(intr["fx"], intr["fy"], intr["cx"], intr["cy"], intr["width"], intr["height"], source)
+        return Intrinsics.checked(intr["fx"], intr["fy"], intr["cx"], intr["cy"], intr["width"], intr["height"], source)
     if "camera_settings" in obj:  # DREAM / NDDS _camera_settings.json
         settings = obj["camera_settings"]
         if not isinstance(settings, list) or not settings or not isinstance(settings[0], Mapping):
@@ -262,7 +194,7 @@ def camera_from_obj(obj: Any, source: str = "camera") -> CameraIntrinsics:
             )
         if _is_number(intr.get("s")) and abs(intr["s"]) > 1e-6:
             raise Monose3Error(f"{source}: camera has non-zero skew s={intr['s']}; give a zero-skew calibration")
-        return _make_camera(intr["fx"], intr["fy"], intr["cx"], intr["cy"], w, h, source)
+        return Intrinsics.checked(intr["fx"], intr["fy"], intr["cx"], intr["cy"], w, h, source)
     matrix_key = next((k for k in ("K", "k", "camera_matrix") if k in obj), None)
     if matrix_key is not None and not any(k in obj for k in ("fx", "fy")):  # ROS CameraInfo style
         w = obj.get("width", obj.get("image_width"))
@@ -272,17 +204,17 @@ def camera_from_obj(obj: Any, source: str = "camera") -> CameraIntrinsics:
                 f"{source}: missing 'width'/'height' (or image_width/image_height) next to '{matrix_key}'; "
                 "add the image size the camera was calibrated at"
             )
-        return CameraIntrinsics.from_K(_matrix9(obj[matrix_key], matrix_key, source), w, h, source)
+        return Intrinsics.from_K(_matrix9(obj[matrix_key], matrix_key, source), w, h, source)
     _require(
         obj,
         ("fx", "fy", "cx", "cy", "width", "height"),
         source,
         "camera intrinsics {fx, fy, cx, cy, width, height} (or a DREAM _camera_settings.json / ROS CameraInfo YAML)",
     )
-    return _make_camera(obj["fx"], obj["fy"], obj["cx"], obj["cy"], obj["width"], obj["height"], source)
+    return Intrinsics.checked(obj["fx"], obj["fy"], obj["cx"], obj["cy"], obj["width"], obj["height"], source)
 
 
-def load_camera(path: str | Path) -> CameraIntrinsics:
+def load_camera(path: str | Path) -> Intrinsics:
     """Camera intrinsics from a JSON or YAML file.
 
     Accepted layouts: ours ``{fx, fy, cx, cy, width, height}``; DREAM's
@@ -298,7 +230,7 @@ def load_camera(path: str | Path) -> CameraIntrinsics:
     return camera
 
 
-def _refuse_nominal_settings(path: Path, camera: CameraIntrinsics) -> None:
+def _refuse_nominal_settings(path: Path, camera: Intrinsics) -> None:
     """A DREAM folder whose frames carry their own intrinsics (``camera_data.intrinsics``, as
     ``monose3 generate`` writes them) has only a nominal camera in ``_camera_settings.json``:
     refuse it when the first frame's own intrinsics differ."""
@@ -323,26 +255,7 @@ def _refuse_nominal_settings(path: Path, camera: CameraIntrinsics) -> None:
         )
 
 
-def scale_camera(camera: CameraIntrinsics, width: int, height: int) -> CameraIntrinsics:
-    """Intrinsics for the same camera resized to ``width`` x ``height`` (pixel-centre convention).
-
-    Only valid when the image was *resized* (not cropped) from the calibrated resolution, which
-    is why it is never applied implicitly.
-    """
-    if not (int(width) == width and int(height) == height and width > 0 and height > 0):
-        raise Monose3Error(f"scale_camera: width/height must be positive whole pixels, got {width}x{height}")
-    sx, sy = width / camera.width, height / camera.height
-    return CameraIntrinsics(
-        fx=camera.fx * sx,
-        fy=camera.fy * sy,
-        cx=(camera.cx + 0.5) * sx - 0.5,
-        cy=(camera.cy + 0.5) * sy - 0.5,
-        width=int(width),
-        height=int(height),
-    )
-
-
-def check_image_camera(image: np.ndarray, camera: CameraIntrinsics) -> None:
+def check_image_camera(image: np.ndarray, camera: Intrinsics) -> None:
     """Refuse an image whose size differs from the one the intrinsics were calibrated at.
 
     Mismatched intrinsics give a plausible-looking but wrong pose, so nothing is rescaled
@@ -353,7 +266,7 @@ def check_image_camera(image: np.ndarray, camera: CameraIntrinsics) -> None:
         return
     hint = ""
     if abs(w / h - camera.width / camera.height) < 1e-3:
-        hint = f" (if the image was only resized, use monose3.inputs.scale_camera(camera, {w}, {h}))"
+        hint = f" (if the image was only resized, use monose3.geometry.camera.scale_camera(camera, {w}, {h}))"
     raise Monose3Error(
         f"image is {w}x{h} but the camera intrinsics are for {camera.width}x{camera.height}; "
         f"give intrinsics calibrated at {w}x{h}{hint}"

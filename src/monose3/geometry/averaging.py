@@ -22,7 +22,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from monose3.errors import Monose3Error
-from monose3.se3_np import matrix_to_quat_xyzw_np, quat_xyzw_to_matrix_np
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import (
+    matrix_to_quat_xyzw,
+    matrix_to_rotvec,
+    procrustes,
+    quat_xyzw_to_matrix,
+    rotation_angle,
+    rotvec_to_matrix,
+)
 
 # Weiszfeld stops when the update is below these (radians / meters) or after MAX_ITERS.
 ROT_TOL = 1e-10
@@ -30,55 +38,6 @@ TRANS_TOL = 1e-9
 MAX_ITERS = 200
 # MAD -> standard deviation for Gaussian data.
 MAD_TO_STD = 1.4826
-
-
-# ---- SO(3) helpers ---------------------------------------------------------------------------
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation vectors ``[..., 3]`` to rotation matrices ``[..., 3, 3]`` (Rodrigues)."""
-    w = np.asarray(w, np.float64)
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    k = _skew(w)
-    small = theta < 1e-8
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a * k + b * (k @ k)
-
-
-def so3_log(rot: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``[..., 3, 3]`` to rotation vectors ``[..., 3]`` (angle in [0, pi]).
-
-    Goes through the quaternion, which stays accurate near 0 and near pi, unlike the
-    ``arccos(trace)`` formula.
-    """
-    q = matrix_to_quat_xyzw_np(rot)  # [..., 4] xyzw, w >= 0
-    v, w = q[..., :3], q[..., 3]
-    s = np.linalg.norm(v, axis=-1)
-    angle = 2.0 * np.arctan2(s, w)
-    scale = np.where(s < 1e-12, 2.0, angle / np.where(s < 1e-12, 1.0, s))
-    return v * scale[..., None]
-
-
-def rotation_angle(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
-    """Geodesic angle (radians) between rotations, broadcast over the leading axes."""
-    return np.linalg.norm(so3_log(np.swapaxes(rot_a, -1, -2) @ rot_b), axis=-1)
-
-
-def project_to_so3(m: np.ndarray) -> np.ndarray:
-    """The nearest rotation (Frobenius) to a 3x3 matrix: the chordal projection."""
-    u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 # ---- averages --------------------------------------------------------------------------------
@@ -116,13 +75,13 @@ def quaternion_mean(rots: np.ndarray, weights: np.ndarray | None = None) -> np.n
     its angle / N."""
     r = _check_rotations(rots)
     w = _weights(len(r), weights)
-    q = matrix_to_quat_xyzw_np(r)
+    q = matrix_to_quat_xyzw(r)
     # q and -q are the same rotation: flip each to the hemisphere of the first before averaging.
     q = q * np.where(q @ q[0] < 0, -1.0, 1.0)[:, None]
     mean = (w[:, None] * q).sum(0)
     if np.linalg.norm(mean) < 1e-12:  # antipodal cancellation: fall back to the eigenvector method
         mean = np.linalg.eigh((w[:, None, None] * q[:, :, None] * q[:, None, :]).sum(0))[1][:, -1]
-    return quat_xyzw_to_matrix_np(mean)
+    return quat_xyzw_to_matrix(mean)
 
 
 def rotation_l1_median(
@@ -139,7 +98,7 @@ def rotation_l1_median(
     w = _weights(len(r), weights)
     est = r[rotation_medoid(r, w)]
     for _ in range(iters):
-        v = so3_log(est.T @ r)  # [N, 3] tangent vectors at est
+        v = matrix_to_rotvec(est.T @ r)  # [N, 3] tangent vectors at est
         d = np.linalg.norm(v, axis=1)
         near = d < 1e-12
         if np.all(near | (w == 0)):
@@ -154,10 +113,10 @@ def rotation_l1_median(
             if pull <= held:
                 break
             step *= 1.0 - held / pull
-        est = est @ so3_exp(step)
+        est = est @ rotvec_to_matrix(step)
         if np.linalg.norm(step) < tol:
             break
-    return project_to_so3(est)
+    return procrustes(est)
 
 
 def geometric_median(
@@ -193,13 +152,6 @@ def geometric_median(
     return est
 
 
-def make_pose_np(rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = rot
-    pose[:3, 3] = trans
-    return pose
-
-
 def _check_poses(poses: np.ndarray) -> np.ndarray:
     p = np.asarray(poses, np.float64)
     if p.ndim != 3 or p.shape[1:] != (4, 4) or len(p) == 0:
@@ -211,7 +163,7 @@ def mean_pose(poses: np.ndarray, weights: np.ndarray | None = None) -> np.ndarra
     """The non-robust baseline: quaternion mean of the rotations, arithmetic mean of the translations."""
     p = _check_poses(poses)
     w = _weights(len(p), weights)
-    return make_pose_np(quaternion_mean(p[:, :3, :3], w), (w[:, None] * p[:, :3, 3]).sum(0) / w.sum())
+    return make_pose(quaternion_mean(p[:, :3, :3], w), (w[:, None] * p[:, :3, 3]).sum(0) / w.sum())
 
 
 def robust_pose_average(poses: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
@@ -220,7 +172,7 @@ def robust_pose_average(poses: np.ndarray, weights: np.ndarray | None = None) ->
     poses the translation is the base origin in the camera frame."""
     p = _check_poses(poses)
     w = _weights(len(p), weights)
-    return make_pose_np(rotation_l1_median(p[:, :3, :3], w), geometric_median(p[:, :3, 3], w))
+    return make_pose(rotation_l1_median(p[:, :3, :3], w), geometric_median(p[:, :3, 3], w))
 
 
 def pose_residuals(poses: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,13 +7,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from monose3.commands import add_train_arguments  # noqa: F401 - the options live in the torch-free commands
-from monose3.config import Config, get_preset, with_section
+from monose3.apps.arguments import add_train_arguments  # noqa: F401 - the options live in the torch-free commands
 from monose3.errors import Monose3Error
+from monose3.method.config import Config, get_preset, with_section
 
 
 def load_frames(data_dirs: list[str | Path], robot: str) -> list:
-    from monose3.dream import open_dataset
+    from monose3.data.dream import open_dataset
 
     frames: list = []
     for d in data_dirs:

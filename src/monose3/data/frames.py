@@ -2,7 +2,7 @@
 
 Kept free of torch and pybullet so the commands can read and check a folder before any
 model loads (``monose3 calibrate`` and ``monose3 track`` take the same layouts; the plain
-folder layout is described in :mod:`monose3.calibrate`)."""
+folder layout is described in :mod:`monose3.apps.calibrate`)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from monose3.data.inputs import load_camera, load_image, load_joints
 from monose3.errors import Monose3Error
-from monose3.inputs import CameraIntrinsics, load_camera, load_image, load_joints
+from monose3.geometry.camera import Intrinsics
 from monose3.robot import RobotModel
 
 log = logging.getLogger("monose3")
@@ -55,7 +56,7 @@ class ImageFrame:
                 f"{where} is {w}x{h} but the camera intrinsics are for {self.image_size[0]}x{self.image_size[1]}; "
                 "give intrinsics calibrated at the images' resolution"
             )
-        from monose3.validation import check_image
+        from monose3.data.validation import check_image
 
         where = self.image_path.name if self.image_path is not None else f"frame {self.name}"
         return check_image(img, where, content=False)
@@ -103,8 +104,8 @@ def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[ImageFrame]
         raise Monose3Error(
             f"no camera.json in {folder}; add the intrinsics as camera.json {{fx, fy, cx, cy, width, height}}"
         )
-    camera: CameraIntrinsics = load_camera(camera_file)
-    from monose3.validation import check_K
+    camera: Intrinsics = load_camera(camera_file)
+    from monose3.geometry.camera import check_K
 
     check_K(camera.K, camera.size, str(camera_file))  # implausible focal length, K for another size
     frames = []
@@ -151,7 +152,7 @@ def load_frames(folder: str | Path, robot: RobotModel) -> Sequence:
             f"no frames in {folder}; expected NNNN.png + NNNN.joints.json per frame and camera.json, "
             "or a DREAM folder (NNNNNN.json + NNNNNN.rgb.jpg)"
         )
-    from monose3.dream import open_dataset
+    from monose3.data.dream import open_dataset
 
     return open_dataset(folder, robot)
 
@@ -188,7 +189,7 @@ def format_skipped(
     return f"{name}: skipped {len(skipped)} unusable frame(s): {names} (reasons in {where})"
 
 
-# ---- per-frame joints of a video (layouts in monose3.track) ---------------------------------------
+# ---- per-frame joints of a video (layouts in monose3.apps.track) ---------------------------------------
 
 
 def load_joints_csv(path: str | Path, robot: RobotModel) -> tuple[list[str] | None, np.ndarray]:

@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 
 from monose3.atomic import atomic_path
 from monose3.errors import Monose3Error
-from monose3.metrics import auc as add_auc
+from monose3.report.metrics import auc as add_auc
 
 Color = tuple[int, int, int]
 FILL_ALPHA = 0.3

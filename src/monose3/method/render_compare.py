@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from monose3.camera import crop_boxes, crop_images, crop_intrinsics, project
-from monose3.se3 import transform_points
+from monose3.geometry.camera import crop_boxes, crop_images, crop_intrinsics, project
+from monose3.geometry.poses import transform_points
 
 
 def crop_geometry(

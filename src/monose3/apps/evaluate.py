@@ -17,12 +17,12 @@ import numpy as np
 from tqdm import tqdm
 
 from monose3 import atomic
+from monose3.data.frames import format_skipped, load_images, skipped_annotations
 from monose3.errors import Monose3Error
-from monose3.estimator import PoseEstimator
-from monose3.frames import format_skipped, load_images, skipped_annotations
-from monose3.metrics import add_per_frame, format_table, summarize
+from monose3.method.estimator import PoseEstimator
+from monose3.report.figures import denoising_strip, plot_add_distribution
+from monose3.report.metrics import add_per_frame, format_table, summarize
 from monose3.robot.jobs import RenderJob
-from monose3.viz import denoising_strip, plot_add_distribution
 
 
 @dataclass
@@ -154,8 +154,8 @@ def write_json(results: Sequence[DatasetResult], path: Path, meta: dict) -> None
 
 def run_evaluate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
-    from monose3.commands import check_evaluate
-    from monose3.dream import open_dataset
+    from monose3.apps.arguments import check_evaluate
+    from monose3.data.dream import open_dataset
 
     checked = getattr(args, "_checked", None) or check_evaluate(args)
     estimator = load_estimator(args.checkpoint)

@@ -47,22 +47,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from monose3.apps.calibrate import draw_pose_overlays
 from monose3.atomic import atomic_path, write_text
-from monose3.calibrate import ImageFrame, draw_pose_overlays, load_frames
-from monose3.errors import Monose3Error
-from monose3.frames import (  # noqa: F401 - the joint-file readers are torch-free, so they live there
-    IGNORED_CSV_COLUMNS,
-    NAME_CSV_COLUMNS,
+from monose3.data.frames import (
+    ImageFrame,
     format_skipped,
+    load_frames,
     load_joints_csv,
     load_joints_dir,
     skipped_annotations,
 )
-from monose3.inputs import load_camera
-from monose3.metrics import FAILURE_MM
+from monose3.data.inputs import load_camera
+from monose3.errors import Monose3Error
+from monose3.geometry.rotations import rotation_angle
+from monose3.report.figures import save_animation
+from monose3.report.metrics import FAILURE_MM
 from monose3.robot import RobotModel
-from monose3.se3_average import rotation_angle
-from monose3.viz import save_animation
 
 # A 1-step update that moves the robot more than this between two frames is not trusted.
 MAX_STEP_MM = 50.0
@@ -318,7 +318,7 @@ def format_summary(results: Sequence[TrackFrame], max_frames: int = PRINT_ALL_FR
 
 def run_track(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
-    from monose3.commands import check_track
+    from monose3.apps.arguments import check_track
 
     checked = getattr(args, "_checked", None) or check_track(args)  # inputs checked before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)

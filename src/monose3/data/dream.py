@@ -30,8 +30,9 @@ import cv2
 import numpy as np
 
 from monose3.errors import Monose3Error
+from monose3.geometry.poses import rigid_fit
+from monose3.geometry.rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from monose3.robot import RobotModel, RobotSpec
-from monose3.se3_np import matrix_to_quat_xyzw_np, quat_xyzw_to_matrix_np, rigid_fit_np
 
 log = logging.getLogger("monose3")
 
@@ -228,7 +229,7 @@ def unreal_quat_to_rotation(q_xyzw: object) -> np.ndarray:
     q = _finite(q_xyzw, (4,), "quaternion_xyzw")
     if np.linalg.norm(q) < 1e-6:
         raise FrameError("quaternion_xyzw is zero")
-    return quat_xyzw_to_matrix_np(q) @ UNREAL_TO_OPENCV
+    return quat_xyzw_to_matrix(q) @ UNREAL_TO_OPENCV
 
 
 @dataclass
@@ -339,7 +340,7 @@ def build_index(parsed: list[_Parsed], model: RobotModel, units: str, skipped: l
                 pose[:3, 3] = p.translation * scale
                 residual = 0.0
             else:
-                pose, residual = rigid_fit_np(model_kp, points)
+                pose, residual = rigid_fit(model_kp, points)
             uv = projected_keypoints(p.projected, points, p.K)
         except FrameError as err:
             skipped.append((p.source or p.name, str(err)))
@@ -515,7 +516,7 @@ def frame_record(
     pose = np.asarray(pose, np.float64)
     kp_cam = np.asarray(keypoints_base, np.float64) @ pose[:3, :3].T + pose[:3, 3]
     uv = kp_cam[:, :2] / kp_cam[:, 2:3] * K[[0, 1], [0, 1]] + K[[0, 1], [2, 2]]
-    quat = matrix_to_quat_xyzw_np(pose[:3, :3] @ UNREAL_TO_OPENCV.T)
+    quat = matrix_to_quat_xyzw(pose[:3, :3] @ UNREAL_TO_OPENCV.T)
     return {
         "camera_data": {
             "location_worldframe": [0.0, 0.0, 0.0],
@@ -608,7 +609,7 @@ def detect_layout(path: str | Path) -> str:
     path = Path(path)
     if not path.is_dir():
         raise Monose3Error(f"dataset folder not found: {path} (check the path)")
-    from monose3.robokeygen import find_sequences
+    from monose3.data.robokeygen import find_sequences
 
     if find_sequences(path):
         return "robokeygen"
@@ -626,7 +627,7 @@ def open_dataset(
 ) -> _FrameSequence:
     """Open a DREAM folder or a RoboKeyGen sequence (or folder of sequences) by its layout."""
     if detect_layout(path) == "robokeygen":
-        from monose3.robokeygen import RoboKeyGenDataset
+        from monose3.data.robokeygen import RoboKeyGenDataset
 
         return RoboKeyGenDataset(path, robot)
     return DreamDataset(path, robot, units)

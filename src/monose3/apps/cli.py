@@ -1,6 +1,6 @@
 """The ``monose3`` command.
 
-The options of every subcommand and the checks of its inputs live in :mod:`monose3.commands`,
+The options of every subcommand and the checks of its inputs live in :mod:`monose3.apps.arguments`,
 which imports neither torch nor pybullet: ``--help``, ``--version`` and a bad input answer
 before the implementation module (``run_<name>(args)`` in the module named in
 ``commands.COMMANDS``) is imported. User errors print on one line (exit code 2).
@@ -13,7 +13,7 @@ import importlib
 import sys
 
 from monose3 import __version__
-from monose3.commands import COMMANDS
+from monose3.apps.arguments import COMMANDS
 from monose3.errors import run_reporting_errors
 
 DESCRIPTION = (
@@ -26,7 +26,7 @@ EPILOG = "Run `monose3 COMMAND --help` for the options of a command; `monose3 de
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser with every subcommand and option (cheap: nothing heavy is imported)."""
-    from monose3 import commands
+    from monose3.apps import arguments as commands
 
     parser = argparse.ArgumentParser(prog="monose3", description=DESCRIPTION, epilog=EPILOG)
     parser.add_argument("--version", action="version", version=f"monose3 {__version__}")
@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from monose3 import commands
+    from monose3.apps import arguments as commands
 
     checked = getattr(commands, f"check_{args.command}")(args)  # before torch / pybullet are imported
     args._checked = checked
