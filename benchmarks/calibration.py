@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from monose3.api import load_estimator
-from monose3.apps.calibrate import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
+from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
 from monose3.data.dream import open_dataset, write_camera_settings, write_frame
 from monose3.data.scenes import (
     PROFILES,
@@ -52,7 +52,7 @@ from monose3.data.scenes import (
 )
 from monose3.errors import Monose3Error, run_reporting_errors
 from monose3.geometry.averaging import pose_residuals
-from monose3.report.figures import new_figure, save_figure
+from monose3.report.plots import new_figure, save_figure
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RenderJob, RobotRenderer
 from monose3.training.checkpoints import read_checkpoint

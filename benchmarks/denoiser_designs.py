@@ -269,7 +269,7 @@ def print_table(results: list[dict], identity: dict) -> None:
 
 def plot(results: list[dict], identity: dict, path: Path) -> Path:
     """Held-out rot and xy parts against training samples, one panel per t bucket, identity dashed."""
-    from monose3.report.figures import new_figure, save_figure
+    from monose3.report.plots import new_figure, save_figure
 
     fig = new_figure((14.0, 7.0))
     for row, part in enumerate(("rot", "xy")):

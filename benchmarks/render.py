@@ -82,7 +82,7 @@ def pybullet_rate(model: RobotModel, jobs: list[RenderJob], seconds: float, work
 
 def save_comparison(model: RobotModel, renderer: RobotRenderer, path: str, size=(320, 240), n: int = 4) -> None:
     """Rows of (monose3, pybullet TinyRenderer, silhouette difference) for ``n`` training-like views."""
-    from monose3.report.figures import save_image
+    from monose3.report.overlays import save_image
     from monose3.robot.reference import Renderer
 
     jobs = make_jobs(model, size, n, seed=5)

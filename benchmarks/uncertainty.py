@@ -46,8 +46,8 @@ from monose3.api import UNRELIABLE_MM, load_estimator, prior_arguments
 from monose3.data.dream import open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
-from monose3.report.figures import new_figure, save_figure
 from monose3.report.metrics import add_per_frame, auc
+from monose3.report.plots import new_figure, save_figure
 from monose3.training.checkpoints import read_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -45,7 +45,7 @@ from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
 from monose3.method.config import DiffusionConfig
 from monose3.method.pose_space import centroid_frame
 from monose3.method.scheduler import FixPerNoiser, VisDiffNoiser
-from monose3.report.figures import new_figure, save_figure
+from monose3.report.plots import new_figure, save_figure
 from monose3.robot import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,16 +13,11 @@ import pytest
 import yaml
 from conftest import look_at
 
-from monose3.apps.calibrate import (
-    REASON_CONSENSUS,
-    REASON_OUT_OF_VIEW,
-    REASON_UNRELIABLE,
-    calibrate,
-    load_frames,
-    write_calibration_files,
-)
+from monose3.apps.calibrate import write_calibration_files
 from monose3.apps.cli import main
+from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
 from monose3.data.dream import write_frame
+from monose3.data.frames import load_frames
 from monose3.errors import Monose3Error
 from monose3.geometry.averaging import (
     geometric_median,

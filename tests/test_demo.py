@@ -4,9 +4,9 @@ import json
 
 import numpy as np
 
-from monose3.api import DEFAULT_CHECKPOINT
 from monose3.apps.cli import main
 from monose3.training.checkpoints import load_model
+from monose3.training.formats import BUNDLED_CHECKPOINT as DEFAULT_CHECKPOINT
 
 
 def test_bundled_model_is_a_small_panda_checkpoint():

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 from conftest import look_at
 
-from monose3.data.frames import ImageFrame
 from monose3.apps.cli import main
 from monose3.apps.track import (
     MODE_FULL,
@@ -23,11 +22,12 @@ from monose3.apps.track import (
     video_frames,
 )
 from monose3.data.dream import write_frame
+from monose3.data.frames import ImageFrame
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset, with_section
 from monose3.method.denoiser import Denoiser
 from monose3.method.estimator import Estimate, PoseEstimator
-from monose3.report.figures import save_animation
+from monose3.report.overlays import save_animation
 from monose3.robot.jobs import RenderJob
 from monose3.training.checkpoints import save_checkpoint
 

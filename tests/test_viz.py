@@ -4,15 +4,8 @@ import numpy as np
 import pytest
 
 from monose3.errors import Monose3Error
-from monose3.report.figures import (
-    denoising_strip,
-    draw_overlay,
-    image_grid,
-    plot_add_distribution,
-    plot_curves,
-    save_animation,
-    save_image,
-)
+from monose3.report.overlays import denoising_strip, draw_overlay, image_grid, save_animation, save_image
+from monose3.report.plots import plot_add_distribution, plot_curves
 
 
 def scene(h=120, w=160):

@@ -1,9 +1,9 @@
 """The Python API, mirroring the CLI: load the shipped model in one call, estimate from an
-image array, joints and K, draw the overlay. ``monose3 estimate`` lives here too."""
+image array, joints and K, draw the overlay (``monose3 estimate`` is the same, in
+:mod:`monose3.apps.estimate`)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,26 +14,22 @@ import yaml
 from monose3 import atomic
 from monose3.data import validation
 from monose3.errors import Monose3Error
-from monose3.method.estimator import Estimate, PoseEstimator
-from monose3.report.figures import draw_overlay, save_image
+from monose3.method.estimator import UNRELIABLE_MM, Estimate, PoseEstimator
+from monose3.report.overlays import pose_overlays
 from monose3.robot import get_spec
-from monose3.robot.renderer import RenderJob, RobotRenderer
+from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import load_model
-from monose3.training.formats import check_checkpoint
+from monose3.training.formats import BUNDLED_CHECKPOINT, check_checkpoint
 
 ASSETS = Path(__file__).parent / "assets"
-DEFAULT_CHECKPOINT = ASSETS / "panda_cpu.pt"
-# Chains that disagree by more than this (mean keypoint distance to the chosen chain) are
-# flagged unreliable; see benchmarks/uncertainty.py for what the threshold catches.
-UNRELIABLE_MM = 30.0
 
 
 def default_checkpoint() -> Path:
-    if not DEFAULT_CHECKPOINT.is_file():
+    if not BUNDLED_CHECKPOINT.is_file():
         raise Monose3Error(
-            f"the bundled model {DEFAULT_CHECKPOINT.name} is missing; reinstall monose3 or pass --checkpoint"
+            f"the bundled model {BUNDLED_CHECKPOINT.name} is missing; reinstall monose3 or pass --checkpoint"
         )
-    return DEFAULT_CHECKPOINT
+    return BUNDLED_CHECKPOINT
 
 
 def load_estimator(
@@ -163,17 +159,10 @@ def overlay_image(
     text: str | None = None,
     gt_keypoints: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The robot rendered at ``pose`` drawn on the image as an outline with its keypoints."""
-    h, w = image.shape[:2]
+    """The robot rendered at ``pose`` drawn on the image as an outline with its keypoints
+    (camera-frame ``gt_keypoints`` ``[K, 3]`` as crosses)."""
     renderer = renderer or RobotRenderer(robot)
-    job = RenderJob(np.asarray(joints, np.float64), pose, np.asarray(K, np.float64), (w, h))
-    _, mask = renderer.render_jobs([job])[0]
-    kp = renderer.model.keypoints(np.asarray(joints)[None], pose[None])[0]
-    uv = kp[:, :2] / kp[:, 2:] * np.diag(K)[:2] + K[:2, 2]
-    gt_uv = None
-    if gt_keypoints is not None:
-        gt_uv = gt_keypoints[:, :2] / gt_keypoints[:, 2:] * np.diag(K)[:2] + K[:2, 2]
-    return draw_overlay(image, mask, uv, gt_keypoints_uv=gt_uv, text=text)
+    return pose_overlays(renderer, [image], [K], [joints], [pose], [text], [gt_keypoints])[0]
 
 
 def write_pose_files(result: PoseResult, out: Path) -> tuple[Path, Path]:
@@ -197,31 +186,3 @@ def format_pose(result: PoseResult) -> str:
         f"base_from_camera (m):\n{fmt(result.base_from_camera)}\n"
         f"{result.confidence_text}: {how}"
     )
-
-
-def run_estimate(args: argparse.Namespace) -> int:
-    from monose3.apps.arguments import check_estimate
-
-    inputs = getattr(args, "_checked", None) or check_estimate(args)  # all of it before the model loads
-    estimator = load_estimator(args.checkpoint, robot=args.robot)
-    try:
-        joints = inputs.joints if inputs.joints is not None else validation.check_joints(args.joints, estimator.robot)
-        result = estimate_pose(
-            estimator, inputs.image, joints, inputs.K, chains=inputs.chains, sampler=args.sampler, prior=inputs.prior
-        )
-        overlay = overlay_image(
-            inputs.image,
-            inputs.K,
-            joints,
-            result.camera_from_base,
-            estimator.robot,
-            estimator.renderer,  # the estimator's own: no second mesh set-up
-            text=result.confidence_text,
-        )
-    finally:
-        estimator.close()
-    json_path, yaml_path = write_pose_files(result, inputs.out)
-    png = save_image(inputs.out / "overlay.png", overlay)
-    print(format_pose(result))
-    print(f"wrote {json_path}, {yaml_path}, {png}")
-    return 0

@@ -449,7 +449,7 @@ def check_evaluate(args: argparse.Namespace) -> SimpleNamespace:
 
 COMMANDS = {
     "demo": ("monose3.apps.demo", "estimate the pose on the bundled sample scene and show the error"),
-    "estimate": ("monose3.api", "estimate camera-from-base from one image, joints and intrinsics"),
+    "estimate": ("monose3.apps.estimate", "estimate camera-from-base from one image, joints and intrinsics"),
     "calibrate": ("monose3.apps.calibrate", "fuse estimates over many frames from a static camera"),
     "track": ("monose3.apps.track", "track the pose over a sequence of frames or a video"),
     "generate": ("monose3.data.scenes", "generate domain-randomised synthetic data in DREAM format"),

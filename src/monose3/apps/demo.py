@@ -12,8 +12,8 @@ import numpy as np
 from monose3.api import ASSETS, estimate_pose, format_pose, load_estimator, overlay_image, write_pose_files
 from monose3.data.inputs import load_camera, load_image, load_joints
 from monose3.geometry.rotations import rotation_angle
-from monose3.report.figures import save_image
 from monose3.report.metrics import add_per_frame
+from monose3.report.overlays import save_image
 
 SAMPLE = ASSETS / "sample"
 

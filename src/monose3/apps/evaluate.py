@@ -20,8 +20,9 @@ from monose3 import atomic
 from monose3.data.frames import format_skipped, load_images, skipped_annotations
 from monose3.errors import Monose3Error
 from monose3.method.estimator import PoseEstimator
-from monose3.report.figures import denoising_strip, plot_add_distribution
 from monose3.report.metrics import add_per_frame, format_table, summarize
+from monose3.report.overlays import denoising_strip
+from monose3.report.plots import plot_add_distribution
 from monose3.robot.jobs import RenderJob
 
 

@@ -47,7 +47,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from monose3.apps.calibrate import draw_pose_overlays
 from monose3.atomic import atomic_path, write_text
 from monose3.data.frames import (
     ImageFrame,
@@ -60,8 +59,8 @@ from monose3.data.frames import (
 from monose3.data.inputs import load_camera
 from monose3.errors import Monose3Error
 from monose3.geometry.rotations import rotation_angle
-from monose3.report.figures import save_animation
 from monose3.report.metrics import FAILURE_MM
+from monose3.report.overlays import pose_overlays, save_animation
 from monose3.robot import RobotModel
 
 # A 1-step update that moves the robot more than this between two frames is not trusted.
@@ -359,8 +358,8 @@ def run_track(args: argparse.Namespace) -> int:
                         text += f" ADD {result.add_mm:.0f} mm"
                     gt = getattr(frame, "keypoints_3d", None)
                     tiles.extend(
-                        draw_pose_overlays(
-                            estimator,
+                        pose_overlays(
+                            estimator.renderer,
                             [image],
                             [frame.K],
                             [frame.joints],

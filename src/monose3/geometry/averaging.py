@@ -38,6 +38,10 @@ TRANS_TOL = 1e-9
 MAX_ITERS = 200
 # MAD -> standard deviation for Gaussian data.
 MAD_TO_STD = 1.4826
+# Consensus rejection: median + CONSENSUS_K * sigma_MAD of the residuals, never tighter than the floors.
+CONSENSUS_K = 3.0
+CONSENSUS_MIN_MM = 10.0
+CONSENSUS_MIN_DEG = 2.0
 
 
 # ---- averages --------------------------------------------------------------------------------
@@ -209,9 +213,9 @@ class ConsensusResult:
 
 def robust_consensus(
     poses: np.ndarray,
-    k: float = 3.0,
-    min_threshold_mm: float = 10.0,
-    min_threshold_deg: float = 2.0,
+    k: float = CONSENSUS_K,
+    min_threshold_mm: float = CONSENSUS_MIN_MM,
+    min_threshold_deg: float = CONSENSUS_MIN_DEG,
     weights: np.ndarray | None = None,
 ) -> ConsensusResult:
     """Fuse, reject poses beyond MAD thresholds of the first robust estimate, fuse the rest.

@@ -27,6 +27,9 @@ from monose3.robot.renderer import RobotRenderer
 # RoboPose's fixed initial orientation (camera-from-reference-point): the robot seen from the front.
 INIT_ROTATION = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)
 INIT_BOX_FRACTION = 3 / 5
+# Chains that disagree by more than this (mean keypoint distance to the chosen chain) are
+# flagged unreliable; see benchmarks/uncertainty.py for what the threshold catches.
+UNRELIABLE_MM = 30.0
 
 
 @dataclass

@@ -349,7 +349,7 @@ def _running_mean(values: list[float], width: int) -> list[float]:
 
 def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path | None:
     """The loss of a run (``log.csv``) and its three parts of Eq. 10 against samples seen."""
-    from monose3.report.figures import plot_curves
+    from monose3.report.plots import plot_curves
 
     with open(log_csv) as fh:
         rows = list(csv.DictReader(fh))

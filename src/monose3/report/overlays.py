@@ -8,18 +8,21 @@ created; plots use matplotlib's Agg canvas so no display is ever needed.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import imageio.v3 as iio
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from monose3.atomic import atomic_path
 from monose3.errors import Monose3Error
-from monose3.report.metrics import auc as add_auc
+from monose3.geometry.camera import project
+from monose3.robot.jobs import RenderJob
+
+if TYPE_CHECKING:  # the renderer imports torch; drawing does not need it
+    from monose3.robot.renderer import RobotRenderer
 
 Color = tuple[int, int, int]
 FILL_ALPHA = 0.3
@@ -251,75 +254,47 @@ def denoising_strip(
     return strip
 
 
-# ---- plots ----------------------------------------------------------------------------------
 
 
-def new_figure(size: tuple[float, float] = (6.4, 4.4)) -> Figure:
-    """A figure outside pyplot (no global state, no backend to choose, nothing to close)."""
-    fig = Figure(figsize=size, dpi=100)
-    FigureCanvasAgg(fig)
-    return fig
 
 
-def save_figure(fig: Figure, path: str | Path, dpi: float | str = "figure") -> Path:
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, bbox_inches="tight", dpi=dpi, format=(p.suffix[1:] or "png").lower())
-    return p
+
+def pose_overlays(
+    renderer: RobotRenderer,
+    images: Sequence[np.ndarray],
+    Ks: Sequence[np.ndarray],
+    joints: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    texts: Sequence[str | None] | None = None,
+    gt_keypoints: Sequence[np.ndarray | None] | None = None,
+    max_width: int | None = None,
+) -> list[np.ndarray]:
+    """The robot rendered at each camera-from-base pose drawn on its image (:func:`draw_overlay`:
+    outline, fill, keypoints; camera-frame ground-truth keypoints ``[K, 3]`` as crosses when
+    given), all rendered in one batch. ``max_width``: wider tiles are shrunk after drawing."""
+    if len(images) == 0:
+        return []
+    joints = np.stack([np.asarray(q, np.float64) for q in joints])
+    poses = np.stack([np.asarray(p, np.float64) for p in poses])
+    Ks = [np.asarray(K, np.float64) for K in Ks]
+    sizes = [(im.shape[1], im.shape[0]) for im in images]
+    jobs = [RenderJob(q, p, K, size) for q, p, K, size in zip(joints, poses, Ks, sizes, strict=True)]
+    masks = [mask for _, mask in renderer.render_jobs(jobs)]
+    keypoints = renderer.model.keypoints(joints, poses)  # [B, K, 3] in the camera frame
+    out = []
+    for i, (image, K, mask) in enumerate(zip(images, Ks, masks, strict=True)):
+        gt = None if gt_keypoints is None or gt_keypoints[i] is None else _pixels(gt_keypoints[i], K)
+        text = None if texts is None else texts[i]
+        tile = draw_overlay(image, mask, _pixels(keypoints[i], K), gt_keypoints_uv=gt, text=text)
+        if max_width is not None and tile.shape[1] > max_width:
+            height = round(tile.shape[0] * max_width / tile.shape[1])
+            tile = cv2.resize(tile, (max_width, height), interpolation=cv2.INTER_AREA)
+        out.append(tile)
+    return out
 
 
-def plot_add_distribution(adds_by_name: Mapping[str, np.ndarray], path: str | Path) -> Path:
-    """Fig. 4 style: fraction of frames with ADD at most x, for x from 0 to 100 mm, one curve per method.
-
-    Every frame is in the denominator (failures never reach the curve), so the area under
-    each curve is the AUC shown in the legend.
-    """
-    if not adds_by_name:
-        raise Monose3Error("plot_add_distribution needs at least one method's ADD values")
-    fig = new_figure()
-    ax = fig.add_subplot(1, 1, 1)
-    thresholds_mm = np.linspace(0.0, 100.0, 1001)
-    for name, adds in adds_by_name.items():
-        arr = np.asarray(adds, dtype=np.float64).reshape(-1)
-        score = add_auc(arr)  # also validates (empty, negative)
-        arr = np.sort(np.where(np.isfinite(arr), arr, np.inf))
-        frac = np.searchsorted(arr, thresholds_mm / 1000.0, side="right") / arr.size
-        ax.plot(thresholds_mm, frac, label=f"{name} (AUC {score:.2f})")
-    ax.set_xlim(0, 100)
-    ax.set_ylim(0, 1.0)
-    ax.set_xlabel("ADD threshold (mm)")
-    ax.set_ylabel("fraction of frames")
-    ax.set_title("ADD accuracy")
-    ax.grid(True, alpha=0.4)
-    ax.legend(loc="lower right")
-    return save_figure(fig, path)
-
-
-def plot_curves(
-    x: Sequence[float] | np.ndarray,
-    ys: Mapping[str, Sequence[float] | np.ndarray],
-    path: str | Path,
-    xlabel: str = "",
-    ylabel: str = "",
-    title: str = "",
-    logy: bool = False,
-) -> Path:
-    """Generic line plot (e.g. loss curves): one line per entry of ``ys`` against the shared ``x``."""
-    if not ys:
-        raise Monose3Error("plot_curves needs at least one curve")
-    xs = np.asarray(x, dtype=np.float64).reshape(-1)
-    fig = new_figure()
-    ax = fig.add_subplot(1, 1, 1)
-    for name, y in ys.items():
-        ya = np.asarray(y, dtype=np.float64).reshape(-1)
-        if ya.size != xs.size:
-            raise Monose3Error(f"curve {name!r} has {ya.size} values but x has {xs.size}; give one value per x")
-        ax.plot(xs, ya, label=str(name))
-    if logy:
-        ax.set_yscale("log")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    ax.grid(True, alpha=0.4)
-    ax.legend(loc="best")
-    return save_figure(fig, path)
+def _pixels(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel positions of camera-frame points; NaN (not drawn) for points behind the camera."""
+    uv = project(np.asarray(points_cam, np.float64), K)
+    uv[points_cam[:, 2] <= 0] = np.nan
+    return uv
