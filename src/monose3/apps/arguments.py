@@ -15,11 +15,13 @@ from types import SimpleNamespace
 
 from monose3.data import validation as v
 from monose3.errors import Monose3Error
+from monose3.method.config import TRAIN_PRESET
 from monose3.robot.jobs import RENDERERS
 from monose3.training.formats import check_checkpoint
 
 CHECKPOINT_HELP = "model checkpoint file (.pt; default: the bundled Panda model)"
-ROBOT_HELP = "robot the checkpoint must be for: panda or kuka (checked before loading)"
+ROBOT_HELP = "robot the checkpoint must be for: panda, kuka or a robot file robot.json (checked before loading)"
+ROBOT_FILE_HELP = 'a robot file: {"urdf": "arm.urdf", "keypoints": [{"name", "link", "offset"}]}'
 DEVICE_HELP = "where the network runs: cpu, cuda or auto (the default: cuda when available)"
 PLOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")
 
@@ -282,7 +284,7 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output folder (DREAM layout)")
     parser.add_argument("--num", required=True, type=int, help="number of frames")
     parser.add_argument("--seed", type=int, default=0, help="random seed (same seed = same data) [0]")
-    parser.add_argument("--robot", default="panda", help="robot name: panda or kuka [panda]")
+    parser.add_argument("--robot", default="panda", help=f"panda, kuka or {ROBOT_FILE_HELP} [panda]")
     parser.add_argument("--urdf", type=Path, help="custom robot: URDF file (with --keypoints)")
     parser.add_argument("--keypoints", type=Path, help='custom robot: {"keypoints": [{"name", "link", "offset"}]}')
     parser.add_argument("--workers", type=int, default=None, help="processes [one per CPU core]; 0 = no subprocess")
@@ -331,8 +333,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "--backgrounds", help="folder of photographs for synthetic backgrounds (default: scikit-image's, if installed)"
     )
     p.add_argument("--out", required=True, help="run folder: weights.json + shards, checkpoint.pt, log.csv, loss.png")
-    p.add_argument("--preset", default="cpu", help="configuration preset: cpu (default) or paper")
-    p.add_argument("--robot", default="panda", help="robot to train for: panda or kuka [panda]")
+    p.add_argument("--preset", default=TRAIN_PRESET, help=f"configuration preset: cpu or paper [{TRAIN_PRESET}]")
+    p.add_argument("--robot", default="panda", help=f"robot to train for: panda, kuka or {ROBOT_FILE_HELP} [panda]")
     p.add_argument("--steps", type=int, help="stop at this optimiser step (overrides the preset)")
     p.add_argument("--minutes", type=float, help="stop cleanly after this much wall-clock time")
     p.add_argument("--init", help="start from these weights (a shard folder / weights.json or a .pt checkpoint)")

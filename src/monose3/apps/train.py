@@ -10,6 +10,7 @@ from pathlib import Path
 from monose3.apps.arguments import add_train_arguments  # noqa: F401 - the options live in the torch-free commands
 from monose3.errors import Monose3Error
 from monose3.method.config import Config, get_preset, with_section
+from monose3.robot import robot_reference
 
 
 def load_frames(data_dirs: list[str | Path], robot: str) -> list:
@@ -27,7 +28,7 @@ def load_frames(data_dirs: list[str | Path], robot: str) -> list:
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    config = get_preset(args.preset, robot=args.robot)
+    config = get_preset(args.preset, robot=robot_reference(args.robot))
     train_over = {
         "max_steps": args.steps,
         "batch_size": args.batch_size,

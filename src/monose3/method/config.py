@@ -109,6 +109,11 @@ PRESETS: dict[str, Config] = {
 }
 
 
+# ``monose3 train``'s default preset: sized for the CPU machine most users start on. ``Config()``
+# itself is the paper's configuration (the ``paper`` preset).
+TRAIN_PRESET = "cpu"
+
+
 def get_preset(name: str, **overrides: Any) -> Config:
     """A preset by name; ``overrides`` replace top-level fields (e.g. ``robot='kuka'``)."""
     if name not in PRESETS:

@@ -10,7 +10,9 @@ from monose3.robot.model import (
     RobotModel,
     RobotSpec,
     get_spec,
+    robot_reference,
     spec_from_files,
+    spec_from_robot_file,
 )
 
 __all__ = [
@@ -22,5 +24,7 @@ __all__ = [
     "RobotModel",
     "RobotSpec",
     "get_spec",
+    "robot_reference",
     "spec_from_files",
+    "spec_from_robot_file",
 ]

@@ -85,32 +85,75 @@ KUKA = RobotSpec(
 ROBOTS = {"panda": PANDA, "kuka": KUKA}
 
 
-def spec_from_files(urdf: str | Path, keypoints_json: str | Path, name: str | None = None) -> RobotSpec:
-    """A spec for any URDF. The keypoint file is ``{"keypoints": [{"name", "link", "offset"?}]}``."""
-    urdf, kp_path = Path(urdf), Path(keypoints_json)
-    for p in (urdf, kp_path):
-        if not p.is_file():
-            raise Monose3Error(f"robot file not found: {p} (pass an existing URDF and keypoint JSON)")
+def _parse_keypoints(entries: object, source: Path) -> tuple[Keypoint, ...]:
     try:
-        entries = json.loads(kp_path.read_text())["keypoints"]
-        kps = tuple(Keypoint(e["name"], e["link"], tuple(e.get("offset", (0, 0, 0)))) for e in entries)
+        return tuple(Keypoint(e["name"], e["link"], tuple(e.get("offset", (0, 0, 0)))) for e in entries)
     except (KeyError, TypeError, ValueError) as err:
         raise Monose3Error(
-            f"malformed keypoint spec {kp_path}: {err!r}; expected "
+            f"malformed keypoint spec {source}: {err!r}; expected "
             '{"keypoints": [{"name": ..., "link": ..., "offset": [x, y, z]}]}'
         ) from None
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise Monose3Error(f"robot file not found: {path} (pass an existing URDF and keypoint JSON)")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise Monose3Error(f"malformed keypoint spec {path}: not valid JSON ({err}); fix its syntax") from None
+    if not isinstance(data, dict) or "keypoints" not in data:
+        raise Monose3Error(f'malformed keypoint spec {path}: no "keypoints" list; give {{"keypoints": [{{"name", "link"}}]}}')
+    return data
+
+
+def spec_from_files(urdf: str | Path, keypoints_json: str | Path, name: str | None = None) -> RobotSpec:
+    """A spec for any URDF. The keypoint file is ``{"keypoints": [{"name", "link", "offset"?}]}``
+    (and optionally ``"optional_joints": {name: default}``)."""
+    urdf, kp_path = Path(urdf), Path(keypoints_json)
+    if not urdf.is_file():
+        raise Monose3Error(f"robot file not found: {urdf} (pass an existing URDF and keypoint JSON)")
+    data = _read_json(kp_path)
     # The shipped URDFs come with their meshes as one compact asset, not as files beside them.
     shipped = next((s.mesh_asset for s in ROBOTS.values() if Path(s.urdf).resolve() == urdf.resolve()), None)
-    return RobotSpec(name=name or urdf.stem, urdf=str(urdf), keypoints=kps, mesh_asset=shipped)
+    return RobotSpec(
+        name=name or urdf.stem,
+        urdf=str(urdf),
+        keypoints=_parse_keypoints(data["keypoints"], kp_path),
+        optional_joints=dict(data.get("optional_joints", {})),
+        mesh_asset=shipped,
+    )
+
+
+def spec_from_robot_file(path: str | Path) -> RobotSpec:
+    """A robot described by one JSON file: ``{"urdf": "arm.urdf", "keypoints": [...]}``, the URDF
+    path relative to the file; its name is ``"name"`` or the file's stem."""
+    path = Path(path)
+    data = _read_json(path)
+    if "urdf" not in data:
+        raise Monose3Error(f'robot file {path} does not name its URDF; add "urdf": "robot.urdf" (relative to the file)')
+    return spec_from_files(path.parent / data["urdf"], path, data.get("name") or path.stem)
+
+
+def robot_reference(robot: str) -> str:
+    """How a robot is named in configs and checkpoints: a shipped robot's name, or the absolute
+    path of a robot file (so a model trained on it finds it again from any folder)."""
+    return robot if robot in ROBOTS else str(Path(robot).resolve())
 
 
 def get_spec(robot: str | RobotSpec) -> RobotSpec:
-    """Resolve a robot name ('panda', 'kuka') or pass a spec through."""
+    """Resolve a robot name ('panda', 'kuka') or a robot file (``*.json``, see
+    :func:`spec_from_robot_file`), or pass a spec through."""
     if isinstance(robot, RobotSpec):
         return robot
-    if robot not in ROBOTS:
-        raise Monose3Error(f"unknown robot {robot!r}; choose one of {sorted(ROBOTS)} or give a URDF")
-    return ROBOTS[robot]
+    if robot in ROBOTS:
+        return ROBOTS[robot]
+    if str(robot).endswith(".json"):
+        return spec_from_robot_file(robot)
+    raise Monose3Error(
+        f"unknown robot {robot!r}; choose one of {sorted(ROBOTS)} or give a robot file "
+        '(robot.json: {"urdf": "robot.urdf", "keypoints": [...]})'
+    )
 
 
 @dataclass

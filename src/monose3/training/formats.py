@@ -10,7 +10,7 @@ import zipfile
 from pathlib import Path
 
 from monose3.errors import Monose3Error
-from monose3.robot import get_spec
+from monose3.robot import get_spec, robot_reference
 
 CHECKPOINT_FORMAT = "monose3-checkpoint-v1"
 SHARD_INDEX = "weights.json"  # the index file of a shard set (monose3.training.shards)
@@ -73,6 +73,7 @@ def check_checkpoint(path: str | Path | None, robot: str | None = None) -> str |
     exist and match the checkpoint's) or the checkpoint's own. None: not known until loading."""
     if robot is not None:
         get_spec(robot)
+        robot = robot_reference(robot)
     found = checkpoint_robot(path)
     if robot is not None and found is not None and found != robot:
         name = Path(path).name if path is not None else BUNDLED_CHECKPOINT.name
