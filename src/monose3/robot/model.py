@@ -103,7 +103,7 @@ def _read_json(path: Path) -> dict:
     except (OSError, ValueError) as err:
         raise Monose3Error(f"malformed keypoint spec {path}: not valid JSON ({err}); fix its syntax") from None
     if not isinstance(data, dict) or "keypoints" not in data:
-        raise Monose3Error(f'malformed keypoint spec {path}: no "keypoints" list; give {{"keypoints": [{{"name", "link"}}]}}')
+        raise Monose3Error(f'malformed keypoint spec {path}: no "keypoints" list; give {{"keypoints": [...]}}')
     return data
 
 
