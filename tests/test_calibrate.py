@@ -22,7 +22,7 @@ from monose3.apps.calibrate import (
     write_calibration_files,
 )
 from monose3.apps.cli import main
-from monose3.data.dream import write_frame
+from monose3.data.dream_writer import write_frame
 from monose3.errors import Monose3Error
 from monose3.geometry.averaging import (
     geometric_median,
