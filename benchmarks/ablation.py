@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from monose3.api import load_estimator
-from monose3.data.dream import open_dataset
+from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
 from monose3.report.metrics import add_per_frame, summarize

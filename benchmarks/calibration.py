@@ -41,15 +41,11 @@ import torch
 
 from monose3.api import load_estimator
 from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
-from monose3.data.dream import open_dataset, write_camera_settings, write_frame
-from monose3.data.scenes import (
-    PROFILES,
-    BackgroundSource,
-    _draw_shapes,
-    compose_frame,
-    frame_rng,
-    sample_scene,
-)
+from monose3.data.datasets import open_dataset
+from monose3.data.dream_writer import write_camera_settings, write_frame
+from monose3.data.scenes.appearance import BackgroundSource, compose_frame, draw_shapes
+from monose3.data.scenes.profiles import PROFILES
+from monose3.data.scenes.sampling import frame_rng, sample_scene
 from monose3.errors import Monose3Error, run_reporting_errors
 from monose3.geometry.averaging import pose_residuals
 from monose3.report.plots import new_figure, save_figure
@@ -121,7 +117,7 @@ def make_static_set(out: Path, frames: int, seed: int) -> dict:
     else:
         raise Monose3Error(f"no camera of profile reallike kept the robot in view for {frames} configurations")
     background = BackgroundSource().sample(rng, IMAGE_SIZE)
-    _draw_shapes(rng, background, int(rng.integers(profile.distractors[0], profile.distractors[1] + 1)), None, 0.5)
+    draw_shapes(rng, background, int(rng.integers(profile.distractors[0], profile.distractors[1] + 1)), None, 0.5)
     backgrounds = FixedBackground(background)
     renders = RobotRenderer(model).render_jobs(
         [RenderJob(q, scene.pose, scene.K, IMAGE_SIZE, scene.lighting) for q in joints]

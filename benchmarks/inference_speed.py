@@ -1,6 +1,6 @@
 """Inference speed against the paper's Table III: FPS and where the time goes.
 
-One 640x480 synthetic image (``monose3.data.scenes``), a randomly initialised denoiser (weights do
+One 640x480 synthetic image (``monose3.data.scenes``: sampling, appearance), a randomly initialised denoiser (weights do
 not change the speed; its zero-initialised head keeps the pose at RoboPose's initialisation, a
 typical view of the robot), one hypothesis. Modes:
 
@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.data.dream import open_dataset
-from monose3.data.scenes import generate_dataset
+from monose3.data.datasets import open_dataset
+from monose3.data.scenes.writer import generate_dataset
 from monose3.errors import run_reporting_errors
 from monose3.method.config import get_preset
 from monose3.method.denoiser import Denoiser

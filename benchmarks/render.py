@@ -19,7 +19,8 @@ import time
 import numpy as np
 import torch
 
-from monose3.data.scenes import PROFILES, sample_scene
+from monose3.data.scenes.profiles import PROFILES
+from monose3.data.scenes.sampling import sample_scene
 from monose3.errors import run_reporting_errors
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RenderJob, RobotRenderer

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.data.dream import open_dataset
-from monose3.data.scenes import generate_dataset
+from monose3.data.datasets import open_dataset
+from monose3.data.scenes.writer import generate_dataset
 from monose3.errors import run_reporting_errors
 from monose3.method.config import Config, get_preset
 from monose3.method.denoiser import Denoiser

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from monose3.api import UNRELIABLE_MM, load_estimator, prior_arguments
-from monose3.data.dream import open_dataset
+from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
 from monose3.report.metrics import add_per_frame, auc

@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monose3.data.scenes import PROFILES, sample_scene
+from monose3.data.scenes.profiles import PROFILES
+from monose3.data.scenes.sampling import sample_scene
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle

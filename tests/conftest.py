@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from monose3.data.scenes import look_at as look_at_rotation
+from monose3.data.scenes.sampling import look_at as look_at_rotation
 from monose3.method.config import NetworkConfig, get_preset
 from monose3.method.denoiser import Denoiser
 from monose3.robot import RobotModel
@@ -114,7 +114,7 @@ def sample_view() -> Callable[..., View]:
 @pytest.fixture(scope="session")
 def tiny_dream(tmp_path_factory):
     """Six small generated DREAM frames (160x120), shared by the training and inference tests."""
-    from monose3.data.scenes import generate_dataset
+    from monose3.data.scenes.writer import generate_dataset
 
     return generate_dataset(
         tmp_path_factory.mktemp("tiny_dream"), 6, seed=3, workers=0, size=(160, 120), progress=False

@@ -9,7 +9,7 @@ from conftest import save_tiny_checkpoint
 
 from monose3.api import estimate_pose, load_estimator
 from monose3.apps.cli import main
-from monose3.data.dream import open_dataset
+from monose3.data.datasets import open_dataset
 from monose3.robot import RobotModel
 
 

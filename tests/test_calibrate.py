@@ -16,7 +16,7 @@ from conftest import look_at
 from monose3.apps.calibrate import write_calibration_files
 from monose3.apps.cli import main
 from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
-from monose3.data.dream import write_frame
+from monose3.data.dream_writer import write_frame
 from monose3.data.frames import load_frames
 from monose3.errors import Monose3Error
 from monose3.geometry.averaging import (

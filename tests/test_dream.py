@@ -11,15 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from monose3.data.dream import (
-    UNREAL_TO_OPENCV,
-    DreamDataset,
-    Frame,
-    detect_layout,
-    open_dataset,
-    write_camera_settings,
-    write_frame,
-)
+from monose3.data.datasets import detect_layout, open_dataset
+from monose3.data.dream import UNREAL_TO_OPENCV, DreamDataset
+from monose3.data.dream_writer import write_camera_settings, write_frame
+from monose3.data.frame import Frame
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 from conftest import TINY_NET
 
-from monose3.data.dream import open_dataset
+from monose3.data.datasets import open_dataset
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.config import get_preset
 from monose3.method.denoiser import Denoiser

@@ -8,7 +8,7 @@ from conftest import TINY_NET, save_tiny_checkpoint
 
 from monose3.apps.cli import main
 from monose3.apps.evaluate import evaluate_dataset
-from monose3.data.dream import open_dataset
+from monose3.data.datasets import open_dataset
 from monose3.method.config import get_preset
 from monose3.method.denoiser import Denoiser
 from monose3.method.estimator import PoseEstimator

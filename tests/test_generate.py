@@ -12,14 +12,10 @@ import pytest
 
 from monose3.apps import cli
 from monose3.data.dream import DreamDataset
-from monose3.data.scenes import (
-    PROFILES,
-    BackgroundSource,
-    frame_rng,
-    generate_dataset,
-    sample_scene,
-    save_preview_grid,
-)
+from monose3.data.scenes.appearance import BackgroundSource
+from monose3.data.scenes.profiles import PROFILES
+from monose3.data.scenes.sampling import frame_rng, sample_scene
+from monose3.data.scenes.writer import generate_dataset, save_preview_grid
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel
 

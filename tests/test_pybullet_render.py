@@ -31,7 +31,8 @@ def _reference_mask(renderer, job: RenderJob, factor: int) -> np.ndarray:
 
 
 def _in_view_scenes(model, size, n, rng):
-    from monose3.data.scenes import PROFILES, sample_scene
+    from monose3.data.scenes.profiles import PROFILES
+    from monose3.data.scenes.sampling import sample_scene
 
     scenes = []
     while len(scenes) < n:

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from monose3.data.dream import detect_layout, open_dataset
+from monose3.data.datasets import detect_layout, open_dataset
 from monose3.data.robokeygen import RoboKeyGenDataset, find_sequences
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel

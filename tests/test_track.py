@@ -21,8 +21,8 @@ from monose3.apps.track import (
     track_sequence,
     video_frames,
 )
-from monose3.data.dream import write_frame
-from monose3.data.frames import ImageFrame
+from monose3.data.dream_writer import write_frame
+from monose3.data.frame import Frame
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset, with_section
 from monose3.method.denoiser import Denoiser
@@ -74,8 +74,8 @@ def dream_dir(tmp_path_factory, sequence):
     return folder
 
 
-def frames_of(sequence) -> list[ImageFrame]:
-    return [ImageFrame(f"{i:04d}", K, SIZE, q, image=img) for i, (q, img) in enumerate(zip(*sequence, strict=True))]
+def frames_of(sequence) -> list[Frame]:
+    return [Frame(f"{i:04d}", K, SIZE, q, image=img) for i, (q, img) in enumerate(zip(*sequence, strict=True))]
 
 
 class ScriptedTracker:
@@ -125,7 +125,7 @@ def test_full_first_then_track_with_the_real_estimator(tiny, sequence):
 
 
 def test_reinitialises_on_jump_out_of_view_lost_and_periodically(models):
-    frames = [ImageFrame(f"{i}", K, SIZE, np.zeros(9), image=np.zeros((120, 160, 3), np.uint8)) for i in range(7)]
+    frames = [Frame(f"{i}", K, SIZE, np.zeros(9), image=np.zeros((120, 160, 3), np.uint8)) for i in range(7)]
     tracker = ScriptedTracker(models["panda"], {2: "jump", 4: "out", 5: "lost"})
     results = track_sequence(tracker, counting(frames, tracker))
     assert [(r.mode, r.reason, r.in_view) for r in results] == [

@@ -14,7 +14,7 @@ import torch
 from conftest import TINY_NET
 
 from monose3.apps.cli import main
-from monose3.data.dream import open_dataset
+from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset, with_section
 from monose3.method.denoiser import DESIGNS, Denoiser

@@ -359,7 +359,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
 
 def check_train(args: argparse.Namespace) -> SimpleNamespace:
     """Every refusal that needs no model, before anything is built or written; returns the frames."""
-    from monose3.data.scenes import get_profile
+    from monose3.data.scenes.profiles import get_profile
     from monose3.robot import get_spec
 
     if args.minutes is not None and not args.minutes > 0:
@@ -392,7 +392,7 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     for d in args.data:
         v.check_input_dir(d, "--data")
     if args.backgrounds:
-        from monose3.data.scenes import list_backgrounds
+        from monose3.data.scenes.appearance import list_backgrounds
 
         list_backgrounds(args.backgrounds)
     from monose3.apps.train import load_frames
@@ -443,7 +443,7 @@ def check_evaluate(args: argparse.Namespace) -> SimpleNamespace:
     for d in args.data:
         v.check_input_dir(d, "--data")
     if robot is not None:
-        from monose3.data.dream import open_dataset
+        from monose3.data.datasets import open_dataset
 
         datasets = [open_dataset(d, robot) for d in args.data]
     return SimpleNamespace(datasets=datasets)
@@ -454,7 +454,7 @@ COMMANDS = {
     "estimate": ("monose3.apps.estimate", "estimate camera-from-base from one image, joints and intrinsics"),
     "calibrate": ("monose3.apps.calibrate", "fuse estimates over many frames from a static camera"),
     "track": ("monose3.apps.track", "track the pose over a sequence of frames or a video"),
-    "generate": ("monose3.data.scenes", "generate domain-randomised synthetic data in DREAM format"),
+    "generate": ("monose3.apps.generate", "generate domain-randomised synthetic data in DREAM format"),
     "train": ("monose3.apps.train", "train the denoising network on DREAM folders or scenes synthesised on the fly"),
     "evaluate": ("monose3.apps.evaluate", "evaluate a checkpoint on DREAM / RoboKeyGen data (ADD, AUC)"),
 }

@@ -156,7 +156,7 @@ def write_json(results: Sequence[DatasetResult], path: Path, meta: dict) -> None
 def run_evaluate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
     from monose3.apps.arguments import check_evaluate
-    from monose3.data.dream import open_dataset
+    from monose3.data.datasets import open_dataset
 
     checked = getattr(args, "_checked", None) or check_evaluate(args)
     estimator = load_estimator(args.checkpoint)

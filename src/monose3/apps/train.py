@@ -14,7 +14,7 @@ from monose3.robot import robot_reference
 
 
 def load_frames(data_dirs: list[str | Path], robot: str) -> list:
-    from monose3.data.dream import open_dataset
+    from monose3.data.datasets import open_dataset
 
     frames: list = []
     for d in data_dirs:

@@ -11,12 +11,13 @@ import logging
 import os
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from monose3.data.inputs import load_camera, load_image, load_joints
+from monose3.data.datasets import open_dataset
+from monose3.data.frame import Frame
+from monose3.data.inputs import load_camera, load_joints
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import Intrinsics
 from monose3.robot import RobotModel
@@ -29,37 +30,8 @@ CAMERA_FILES = ("camera.json", "camera.yaml", "camera.yml")
 IGNORED_CSV_COLUMNS = ("time", "timestamp", "stamp")
 NAME_CSV_COLUMNS = ("frame", "name")
 
-# ---- frames ----------------------------------------------------------------------------------
-
-
-@dataclass
-class ImageFrame:
-    """One user frame: an image (a file or an array already in memory, e.g. a video frame),
-    its joints and intrinsics. ``pose`` / ``keypoints_3d`` are ground truth when known
-    (DREAM frames carry them under the same names)."""
-
-    name: str
-    K: np.ndarray
-    image_size: tuple[int, int]
-    joints: np.ndarray
-    image_path: Path | None = None
-    image: np.ndarray | None = None
-    pose: np.ndarray | None = None
-    keypoints_3d: np.ndarray | None = None
-
-    def load_image(self) -> np.ndarray:
-        img = self.image if self.image is not None else load_image(self.image_path)
-        h, w = img.shape[:2]
-        if (w, h) != tuple(self.image_size):
-            where = self.image_path.name if self.image_path is not None else f"frame {self.name}"
-            raise Monose3Error(
-                f"{where} is {w}x{h} but the camera intrinsics are for {self.image_size[0]}x{self.image_size[1]}; "
-                "give intrinsics calibrated at the images' resolution"
-            )
-        from monose3.data.validation import check_image
-
-        where = self.image_path.name if self.image_path is not None else f"frame {self.name}"
-        return check_image(img, where, content=False)
+# Transitional: the one frame type under its old name here, until the commands import Frame.
+ImageFrame = Frame
 
 
 def _natural_key(name: str) -> list:
@@ -88,7 +60,7 @@ def is_plain_folder(folder: Path) -> bool:
     return any(n in CAMERA_FILES for n in names) or any(_joints_stem(n) is not None for n in names)
 
 
-def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[ImageFrame]:
+def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[Frame]:
     """The frames of a plain folder (layout in the module docstring); joints are read and
     checked up front so a bad file stops the run before any estimation."""
     folder = Path(folder)
@@ -116,7 +88,7 @@ def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[ImageFrame]
                 "{joint name: radians} (or remove the image)"
             )
         joints = load_joints(folder / joints_files[stem], robot)
-        frames.append(ImageFrame(stem, camera.K, camera.size, joints, image_path=folder / image_name))
+        frames.append(Frame(stem, camera.K, camera.size, joints, image_path=folder / image_name))
     orphans = sorted(set(joints_files) - {stem for _, stem in images})
     if orphans:
         log.warning("%d joints file(s) without an image in %s ignored (e.g. %s)", len(orphans), folder, orphans[0])
@@ -152,8 +124,6 @@ def load_frames(folder: str | Path, robot: RobotModel) -> Sequence:
             f"no frames in {folder}; expected NNNN.png + NNNN.joints.json per frame and camera.json, "
             "or a DREAM folder (NNNNNN.json + NNNNNN.rgb.jpg)"
         )
-    from monose3.data.dream import open_dataset
-
     return open_dataset(folder, robot)
 
 

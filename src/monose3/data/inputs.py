@@ -19,9 +19,11 @@ import numpy as np
 import yaml
 
 from monose3.errors import Monose3Error
-from monose3.geometry.camera import Intrinsics
+from monose3.geometry.camera import Intrinsics, is_number
 from monose3.robot import RobotModel
 
+# A DREAM folder's default camera (NDDS layout; per-frame intrinsics override it).
+CAMERA_SETTINGS = "_camera_settings.json"
 # A joint value further than this outside its URDF limits is taken as a unit mistake (degrees).
 JOINT_LIMIT_SLACK_RAD = 0.5
 
@@ -66,10 +68,6 @@ def _read_structured(path: Path, what: str) -> Any:
         raise Monose3Error(f"{what} file {path} is not valid JSON/YAML ({msg}); fix its syntax") from None
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-
-
 # ---- joints ---------------------------------------------------------------------------------
 
 
@@ -79,7 +77,7 @@ def _joints_from_obj(obj: Any, source: str) -> dict[str, Any] | list[Any]:
         # A whole DREAM frame file, or a wrapper like {"joints": ...}.
         if isinstance(obj.get("sim_state"), Mapping) and "joints" in obj["sim_state"]:
             return _joints_from_obj(obj["sim_state"]["joints"], source)
-        if "joints" in obj and not _is_number(obj["joints"]):
+        if "joints" in obj and not is_number(obj["joints"]):
             return _joints_from_obj(obj["joints"], source)
         return dict(obj)
     if isinstance(obj, (list, tuple, np.ndarray)):
@@ -125,7 +123,7 @@ def load_joints(path_or_obj: str | Path | Mapping[str, Any] | list[Any], robot: 
     joints = _joints_from_obj(obj, source)
     named = joints.items() if isinstance(joints, dict) else ((f"#{i}", v) for i, v in enumerate(joints))
     for name, v in named:
-        if not _is_number(v):
+        if not is_number(v):
             raise Monose3Error(f"{source}: joint {name} must be a number in radians, got {v!r}")
     vec = robot.joint_vector(joints)  # checks names, count and NaN with its own one-line errors
     limits = robot.joint_limits()
@@ -192,7 +190,7 @@ def camera_from_obj(obj: Any, source: str = "camera") -> Intrinsics:
             raise Monose3Error(
                 f"{source}: missing captured_image_size (width, height) in camera_settings[0]; add the image size"
             )
-        if _is_number(intr.get("s")) and abs(intr["s"]) > 1e-6:
+        if is_number(intr.get("s")) and abs(intr["s"]) > 1e-6:
             raise Monose3Error(f"{source}: camera has non-zero skew s={intr['s']}; give a zero-skew calibration")
         return Intrinsics.checked(intr["fx"], intr["fy"], intr["cx"], intr["cy"], w, h, source)
     matrix_key = next((k for k in ("K", "k", "camera_matrix") if k in obj), None)
@@ -228,6 +226,21 @@ def load_camera(path: str | Path) -> Intrinsics:
     if isinstance(obj, Mapping) and "camera_settings" in obj:
         _refuse_nominal_settings(p, camera)
     return camera
+
+
+def read_camera_settings(path: str | Path) -> tuple[np.ndarray, tuple[int, int]]:
+    """K and (width, height) from a DREAM ``_camera_settings.json``, by the same parser as
+    :func:`load_camera` (without its refusal of a nominal camera: dataset readers take the
+    frames' own intrinsics first)."""
+    p = Path(path)
+    try:
+        camera = camera_from_obj(_read_structured(p, "camera settings"), str(p))
+    except Monose3Error as err:
+        raise Monose3Error(
+            f"malformed camera settings {err}; expected camera_settings[0].intrinsic_settings "
+            "{fx, fy, cx, cy} and captured_image_size {width, height}"
+        ) from None
+    return camera.K, camera.size
 
 
 def _refuse_nominal_settings(path: Path, camera: Intrinsics) -> None:

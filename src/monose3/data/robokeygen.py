@@ -1,4 +1,4 @@
-"""RoboKeyGen real sequences (RealSense-Franka, AzureKinect-Franka) as :class:`~monose3.data.dream.Frame`.
+"""RoboKeyGen real sequences (RealSense-Franka, AzureKinect-Franka) as :class:`~monose3.data.frame.Frame`.
 
 Layout, as RoboKeyGen's own loaders read it: one folder per sequence with ``NNNN_color.png``
 and ``NNNN_meta.json`` per frame. The meta file is a JSON list whose element 0 holds
@@ -29,17 +29,17 @@ from pathlib import Path
 
 import numpy as np
 
-from monose3.data.dream import (
-    CAMERA_SETTINGS,
+from monose3.data.annotations import (
     FrameError,
-    _FrameSequence,
-    _Parsed,
-    _progress,
+    FrameSequence,
+    ParsedFrame,
     build_index,
+    check_units,
     match_keypoints,
     parse_joints,
-    read_camera_settings,
+    progress,
 )
+from monose3.data.inputs import CAMERA_SETTINGS, read_camera_settings
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import intrinsics_matrix
 from monose3.robot import RobotModel, RobotSpec
@@ -125,8 +125,8 @@ def _pick_key(entries: list, candidates: tuple[str, ...]) -> str:
     return candidates[0]
 
 
-class RoboKeyGenDataset(_FrameSequence):
-    """RoboKeyGen sequence folder(s) as a sequence of :class:`~monose3.data.dream.Frame`.
+class RoboKeyGenDataset(FrameSequence):
+    """RoboKeyGen sequence folder(s) as a sequence of :class:`~monose3.data.frame.Frame`.
 
     ``folder`` is one sequence (``NNNN_color.png`` + ``NNNN_meta.json``) or a folder of
     sequences; with several sequences frame names are ``sequence/NNNN``. Unusable frames are
@@ -136,8 +136,7 @@ class RoboKeyGenDataset(_FrameSequence):
     def __init__(self, folder: str | Path, robot: RobotModel | RobotSpec | str = "panda", units: str = "auto"):
         self.folder = Path(folder)
         self.robot = robot if isinstance(robot, RobotModel) else RobotModel(robot)
-        if units not in ("auto", "m", "cm"):
-            raise Monose3Error(f"units must be 'auto', 'm' or 'cm', got {units!r}")
+        check_units(units)
         if not self.folder.is_dir():
             raise Monose3Error(f"dataset folder not found: {self.folder} (check the path)")
         self.sequences = find_sequences(self.folder)
@@ -153,15 +152,15 @@ class RoboKeyGenDataset(_FrameSequence):
             camera = self._sequence_camera(seq)
             files = _frame_files(seq)
             total += len(files)
-            for stem, meta, image in _progress(files, f"indexing {seq.name}"):
+            for stem, meta, image in progress(files, f"indexing {seq.name}"):
                 name = f"{seq.name}/{stem}" if multi else stem
                 source = f"{seq.name}/{meta.name}" if multi else meta.name
                 try:
                     parsed.append(self._parse(name, meta, image, camera, source))
                 except FrameError as err:
                     self.skipped.append((source, str(err)))
-        self._index = build_index(parsed, self.robot, units, self.skipped)
-        self._report_skipped(total)
+        self.packed = build_index(parsed, self.robot, units, self.skipped)
+        self.report_skipped(total)
         if len(self) == 0:
             first = self.skipped[0] if self.skipped else ("-", "-")
             raise Monose3Error(
@@ -176,7 +175,7 @@ class RoboKeyGenDataset(_FrameSequence):
                 return read_camera_settings(cand)
         return None
 
-    def _parse(self, name: str, meta: Path, image: Path, camera, source: str) -> _Parsed:
+    def _parse(self, name: str, meta: Path, image: Path, camera, source: str) -> ParsedFrame:
         try:
             data = json.loads(meta.read_text())
         except (OSError, UnicodeDecodeError, ValueError) as err:
@@ -205,4 +204,4 @@ class RoboKeyGenDataset(_FrameSequence):
         joints = parse_joints(
             joint_entries, self.robot, _pick_key(jl, ("Name", "name")), _pick_key(jl, ("position", "Angle", "angle"))
         )
-        return _Parsed(name, image, K, size, joints, locs, chosen, synthetic=False, source=source)
+        return ParsedFrame(name, image, K, size, joints, locs, chosen, synthetic=False, source=source)

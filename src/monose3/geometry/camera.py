@@ -32,12 +32,13 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _is_number(value: Any) -> bool:
+def is_number(value: Any) -> bool:
+    """A real number (Python or numpy), not a bool."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 def _number(value: Any, key: str, source: str) -> float:
-    if not _is_number(value):
+    if not is_number(value):
         raise Monose3Error(f"{source}: '{key}' must be a number, got {value!r}")
     return float(value)
 

@@ -253,6 +253,11 @@ class RobotModel:
     def keypoint_names(self) -> list[str]:
         return [kp.name for kp in self.spec.keypoints]
 
+    @property
+    def mimic_joint_names(self) -> list[str]:
+        """Joints driven by another (URDF ``<mimic>``): not inputs, but files may list them."""
+        return list(self._mimic)
+
     def joint_limits(self) -> np.ndarray:
         """``[n_joints, 2]`` lower/upper limits of the independent joints."""
         return np.array([[self._joint_by_name[n].lower, self._joint_by_name[n].upper] for n in self.joint_names])

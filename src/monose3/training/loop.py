@@ -22,7 +22,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from monose3.data.scenes import get_profile
+from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser, pose_input

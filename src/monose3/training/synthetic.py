@@ -1,7 +1,7 @@
 """Synthetic training images made on the training device, nothing on disk.
 
 A scene (joints, camera, intrinsics, light) is drawn exactly as ``monose3 generate`` draws
-frame ``i`` (:func:`monose3.data.scenes.sample_scene`), cheaply, in data-loader workers. The
+frame ``i`` (:func:`monose3.data.scenes.sampling.sample_scene`), cheaply, in data-loader workers. The
 "real" image is then rendered straight into the crop that the forward process implies (the
 robot at its true pose seen through the crop's intrinsics, which is the crop of a full-size
 render without the resampling), over a random background, with distractors, occluders, the
@@ -20,14 +20,9 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset
 from torchvision.ops import roi_align
 
-from monose3.data.scenes import (
-    IMAGE_EXTS,
-    SceneProfile,
-    frame_rng,
-    get_profile,
-    list_backgrounds,
-    sample_scene,
-)
+from monose3.data.scenes.appearance import IMAGE_EXTS, list_backgrounds
+from monose3.data.scenes.profiles import SceneProfile, get_profile
+from monose3.data.scenes.sampling import frame_rng, sample_scene
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel, RobotSpec
 from monose3.robot.renderer import LightingBatch, RobotRenderer
