@@ -53,7 +53,7 @@ OVERHEAD_LIMIT = 0.15
 STAGES = ("render", "crop", "network", "update")
 # The estimator's steps outside its timed stages: image standardisation + surface points, the
 # initial pose, and the final medoid / in-view check.
-HELPERS = ("_prepare", "initial_poses", "_finish")
+HELPERS = ("prepare", "initial_poses", "finish")
 
 
 def load_frame() -> dict:
@@ -140,13 +140,13 @@ def overhead_breakdown(est: PoseEstimator, frame: dict, repeats: int = 30) -> di
     (so a preempted call on a busy machine does not masquerade as overhead)."""
     net = est.config.network
     images, Ks, joints = [frame["image"]], frame["K"][None], frame["joints"][None]
-    batch = est._prepare(images, Ks, joints, 1)
+    batch = est.prepare(images, Ks, joints, 1)
     pose = centroid_frame(torch.from_numpy(np.asarray(frame["pose"], np.float64)[None]), batch.centroid)
     boxes, K_crop = crop_geometry(pose, batch.points_ref, batch.K, net.render_size)
     raw = torch.zeros(1, 9, dtype=torch.float64)
     pieces = {
-        "_prepare (per call)": lambda: est._prepare(images, Ks, joints, 1),
-        "_finish (per call)": lambda: est._finish(batch, [pose, pose], 1, 1),
+        "prepare (per call)": lambda: est.prepare(images, Ks, joints, 1),
+        "finish (per call)": lambda: est.finish(batch, [pose, pose], 1, 1),
         "crop_geometry (per step)": lambda: crop_geometry(pose, batch.points_ref, batch.K, net.render_size),
         "crop_batch (per step)": lambda: crop_batch(batch.images, boxes, net.render_size),
         "render (per step)": lambda: est.renderer.render(
@@ -204,11 +204,11 @@ def report(out: dict) -> str:
             f"{ratio:>5.2f}{' PASS' if ratio >= 1 else ' MISS'}"
             + (f"  {r['ips']:.1f} images/s" if r["workers"] > 1 else "")
         )
-    lines.append("'other' split (ms): _prepare (standardise image, surface points) / initial_poses / _finish")
+    lines.append("'other' split (ms): prepare (standardise image, surface points) / initial_poses / finish")
     for r in out["rows"]:
         lines.append(
-            f"  {r['preset']:<6} B={r['workers']} {r['mode']:<9} {1000 * r['_prepare']:6.1f} / "
-            f"{1000 * r['initial_poses']:5.1f} / {1000 * r['_finish']:5.1f}   "
+            f"  {r['preset']:<6} B={r['workers']} {r['mode']:<9} {1000 * r['prepare']:6.1f} / "
+            f"{1000 * r['initial_poses']:5.1f} / {1000 * r['finish']:5.1f}   "
             f"unaccounted {1000 * r['unaccounted']:5.1f}"
         )
     lines.append(

@@ -44,14 +44,14 @@ from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
 from monose3.method.config import DiffusionConfig
-from monose3.method.pose_space import centroid_frame
-from monose3.method.scheduler import FixPerNoiser, VisDiffNoiser
+from monose3.method.pose_space import MIN_DEPTH, centroid_frame
+from monose3.method.scheduler import DDIMScheduler, FixPer
 from monose3.report.plots import new_figure, save_figure
 from monose3.robot import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SIZE = (640, 480)
-DEPTH_FLOOR = 0.1  # both noisers clamp depth to this; a sample at the floor counts as out of view
+DEPTH_FLOOR = MIN_DEPTH  # both noisers clamp depth to this; a sample at the floor counts as out of view
 TIMESTEPS = [1, *range(10, 101, 10)]
 POINT_STRIDE = 4  # use every 4th of the 2000 surface points for the half-visible test
 
@@ -176,9 +176,9 @@ def _run(scenes: int, reps: int, seed: int, timesteps: list[int]) -> dict:
     base = DiffusionConfig()
     stds, means = fixper_mean_angle_curve(seed)
     noisers = {
-        "VisDiff g=3": VisDiffNoiser(replace(base, gamma=3.0)),
-        "VisDiff g=1": VisDiffNoiser(replace(base, gamma=1.0)),
-        "FixPer": FixPerNoiser(base),
+        "VisDiff g=3": DDIMScheduler(replace(base, gamma=3.0)),
+        "VisDiff g=1": DDIMScheduler(replace(base, gamma=1.0)),
+        "FixPer": FixPer(base),
     }
     results: dict[str, dict[int, dict]] = {name: {} for name in [*noisers, "FixPer matched", "FixPer@camera"]}
     matched_std: dict[int, float] = {}
@@ -186,12 +186,12 @@ def _run(scenes: int, reps: int, seed: int, timesteps: list[int]) -> dict:
         tt = torch.full((len(K),), t, dtype=torch.long)
         for j, (name, noiser) in enumerate(noisers.items()):
             gen = torch.Generator().manual_seed(seed * 1_000_003 + 100 * k + j)
-            results[name][t] = measure(noiser(pose_0, tt, K, size, gen), pose_0, K, points)
+            results[name][t] = measure(noiser.add_noise(pose_0, tt, K, size, gen), pose_0, K, points)
         std = std_for_mean_angle(results["VisDiff g=3"][t]["rot_mean"], stds, means)
         matched_std[t] = std
         gen = torch.Generator().manual_seed(seed * 1_000_003 + 100 * k + 50)
-        matched = FixPerNoiser(replace(base, fixper_rot_std_deg=std))
-        results["FixPer matched"][t] = measure(matched(pose_0, tt, K, size, gen), pose_0, K, points)
+        matched = FixPer(replace(base, fixper_rot_std_deg=std))
+        results["FixPer matched"][t] = measure(matched.add_noise(pose_0, tt, K, size, gen), pose_0, K, points)
         gen = torch.Generator().manual_seed(seed * 1_000_003 + 100 * k + 60)
         results["FixPer@camera"][t] = measure(fixper_about_camera(pose_0, base, gen), pose_0, K, points)
     return {

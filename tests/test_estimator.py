@@ -37,7 +37,7 @@ def _inputs(frames, n):
 
 def test_initialisation_fits_the_central_box(estimator, frames):
     images, Ks, joints = _inputs(frames, 2)
-    batch = estimator._prepare(images, Ks, joints, 1)
+    batch = estimator.prepare(images, Ks, joints, 1)
     pose = estimator.initial_poses(batch)
     pts = batch.points_ref @ pose[:, :3, :3].transpose(1, 2) + pose[:, None, :3, 3]
     uv = (

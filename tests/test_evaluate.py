@@ -6,12 +6,15 @@ import numpy as np
 import pytest
 from conftest import TINY_NET, save_tiny_checkpoint
 
+from monose3.api import load_estimator
 from monose3.apps.cli import main
 from monose3.apps.evaluate import evaluate_dataset
+from monose3.apps.track import track_sequence
 from monose3.data.datasets import open_dataset
 from monose3.method.config import get_preset
 from monose3.method.denoiser import Denoiser
 from monose3.method.estimator import PoseEstimator
+from monose3.method.tracking import MODE_FULL
 from monose3.report.metrics import add_per_frame
 
 
@@ -66,23 +69,31 @@ def test_cli_writes_table_json_plot_and_overlays(tiny_dream, tiny_checkpoint, tm
     assert plot.stat().st_size > 1000 and len(list(overlays.glob("*.png"))) == 1
 
 
-def test_cli_tracking_mode(tiny_dream, tiny_checkpoint, tmp_path):
-    assert (
-        main(
-            [
-                "evaluate",
-                "--data",
-                str(tiny_dream),
-                "--checkpoint",
-                str(tiny_checkpoint),
-                "--sampler",
-                "tracking",
-                "--steps",
-                "1",
-                "0",
-                "--limit",
-                "3",
-            ]
+def test_cli_tracking_mode_reports_the_shared_tracking_policy(tiny_dream, tiny_checkpoint, tmp_path):
+    """``evaluate --sampler tracking`` and ``monose3 track`` run one policy: the per-frame poses,
+    modes and re-initialisation reasons evaluate reports equal track_sequence's on the same frames."""
+    out_json = tmp_path / "track.json"
+    argv = ["evaluate", "--data", str(tiny_dream), "--checkpoint", str(tiny_checkpoint), "--sampler", "tracking"]
+    assert main([*argv, "--limit", "4", "--json", str(out_json)]) == 0
+    records = json.loads(out_json.read_text())["datasets"][tiny_dream.name]["frames"]
+    estimator = load_estimator(tiny_checkpoint)
+    try:
+        expected = track_sequence(estimator, open_dataset(tiny_dream, estimator.robot)[:4])
+    finally:
+        estimator.close()
+    assert len(records) == len(expected) == 4
+    assert records[0]["mode"] == MODE_FULL and records[0]["reason"] == "first"
+    for rec, ref in zip(records, expected, strict=True):
+        assert (rec["frame"], rec["mode"], rec["reason"], rec["in_view"]) == (
+            ref.name,
+            ref.mode,
+            ref.reason,
+            ref.in_view,
         )
-        == 0
-    )
+        assert np.allclose(rec["camera_from_base"], ref.camera_from_base, atol=1e-9)
+        if ref.in_view:
+            assert rec["add_m"] == pytest.approx(ref.add_mm / 1000.0)
+    # --steps sets the full process of the first frame (and of every re-initialisation).
+    assert main([*argv, "--steps", "1", "0", "--limit", "2", "--json", str(out_json)]) == 0
+    records = json.loads(out_json.read_text())["datasets"][tiny_dream.name]["frames"]
+    assert [r["mode"] for r in records][:1] == [MODE_FULL] and len(records) == 2

@@ -12,21 +12,14 @@ import pytest
 from conftest import look_at
 
 from monose3.apps.cli import main
-from monose3.apps.track import (
-    MODE_FULL,
-    MODE_TRACK,
-    load_joints_csv,
-    load_joints_dir,
-    read_video,
-    track_sequence,
-    video_frames,
-)
+from monose3.apps.track import load_joints_csv, load_joints_dir, read_video, track_sequence, video_frames
 from monose3.data.dream_writer import write_frame
 from monose3.data.frame import Frame
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset, with_section
 from monose3.method.denoiser import Denoiser
 from monose3.method.estimator import Estimate, PoseEstimator
+from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 from monose3.report.overlays import save_animation
 from monose3.robot.jobs import RenderJob
 from monose3.training.checkpoints import save_checkpoint
@@ -121,7 +114,7 @@ def test_full_first_then_track_with_the_real_estimator(tiny, sequence):
     assert seen == [(f"{i:04d}", (SIZE[1], SIZE[0], 3)) for i in range(N)]
     assert all(r.in_view for r in results)
     for r in results[1:]:  # the step size is measured and below the jump thresholds
-        assert r.step_mm is not None and 0 <= r.step_mm < 50 and r.step_deg < 10
+        assert r.step_mm is not None and 0 <= r.step_mm < MAX_STEP_MM and r.step_deg < MAX_STEP_DEG
 
 
 def test_reinitialises_on_jump_out_of_view_lost_and_periodically(models):
@@ -151,13 +144,36 @@ def test_reinitialises_on_jump_out_of_view_lost_and_periodically(models):
         (6, "full"),
     ]
     periodic = ScriptedTracker(models["panda"], {})
-    results = track_sequence(periodic, counting(frames[:5], periodic), reinit_every=2)
+    results = track_sequence(periodic, counting(frames[:5], periodic), TrackingPolicy(reinit_every=2))
     assert [r.mode for r in results] == [MODE_FULL, MODE_TRACK, MODE_FULL, MODE_TRACK, MODE_FULL]
     assert [r.reason for r in results if r.mode == MODE_FULL] == ["first", "periodic", "periodic"]
     # A looser jump threshold keeps the 200 mm step as tracking.
     loose = ScriptedTracker(models["panda"], {2: "jump"})
-    results = track_sequence(loose, counting(frames[:3], loose), max_step_mm=250.0)
+    results = track_sequence(loose, counting(frames[:3], loose), TrackingPolicy(max_step_mm=250.0))
     assert [r.mode for r in results] == [MODE_FULL, MODE_TRACK, MODE_TRACK]
+
+
+def test_tracker_passes_full_estimate_options_and_refuses_a_bad_period(models):
+    """The shared Tracker hands its full-estimate options to every full estimate only."""
+    calls = []
+
+    class Recorder(ScriptedTracker):
+        def estimate(self, images, Ks, joints, **kw):
+            calls.append(kw)
+            return super().estimate(images, Ks, joints, **kw)
+
+    frames = [np.zeros((120, 160, 3), np.uint8)] * 3
+    rec = Recorder(models["panda"], {1: "jump"})
+    tracker = Tracker(rec, ddim_steps=2, direct_steps=0)
+    steps = []
+    for i, img in enumerate(frames):
+        rec.frame = i
+        steps.append(tracker.update(img, K, np.zeros(9)))
+    assert [(s.mode, s.reason) for s in steps] == [(MODE_FULL, "first"), (MODE_FULL, "jump"), (MODE_TRACK, None)]
+    assert calls == [{"ddim_steps": 2, "direct_steps": 0}] * 2
+    assert np.array_equal(steps[2].camera_from_base, steps[2].estimate.poses[0])
+    with pytest.raises(Monose3Error, match="reinit_every must be at least 1"):
+        TrackingPolicy(reinit_every=0)
 
 
 # ---- command line ------------------------------------------------------------------------------

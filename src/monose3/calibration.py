@@ -191,7 +191,7 @@ def calibrate(
     """Fuse the estimates of ``frames`` (all seen by one static camera) into one extrinsic.
 
     ``frames``: objects with ``name``, ``K``, ``joints`` and ``load_image()`` (DREAM frames or
-    :class:`ImageFrame`); with ``pose`` and ``keypoints_3d`` on every frame the error of the
+    :class:`monose3.data.frame.Frame`); with ``pose`` and ``keypoints_3d`` on every frame the error of the
     fused pose against ground truth is filled in. Frames whose image cannot be read are
     skipped and listed in ``result.skipped``. Raises Monose3Error if no frame survives.
     """

@@ -19,7 +19,8 @@ from tqdm import tqdm
 from monose3 import atomic
 from monose3.data.frames import format_skipped, load_images, skipped_annotations
 from monose3.errors import Monose3Error
-from monose3.method.estimator import PoseEstimator
+from monose3.method.estimator import Estimate, PoseEstimator
+from monose3.method.tracking import Tracker, TrackStep
 from monose3.report.metrics import add_per_frame, format_table, summarize
 from monose3.report.overlays import denoising_strip
 from monose3.report.plots import plot_add_distribution
@@ -64,11 +65,14 @@ def evaluate_dataset(
     cannot be read are skipped and listed in ``result.skipped`` (with those the reader left
     out for bad annotations); Monose3Error when no frame is usable.
 
-    ``tracking``: frames are a sequence; the first gets the full reverse process, each next
-    one a single step from the previous estimate (batch size 1).
+    ``tracking``: frames are a sequence, estimated one at a time by the tracking policy that
+    ``monose3 track`` uses (:class:`~monose3.method.tracking.Tracker`: the full reverse process
+    with ``sampler``/``ddim_steps``/``direct_steps`` first and on re-initialisation, one step
+    from the previous estimate otherwise); each frame's record then has its ``mode`` and ``reason``.
     """
     result = DatasetResult(name, skipped=skipped_annotations(frames))
-    previous = None
+    full = {"sampler": sampler, "ddim_steps": ddim_steps, "direct_steps": direct_steps}
+    tracker = Tracker(estimator, **full) if tracking else None
     batches = _batches(len(frames), 1 if tracking else batch_size, limit)
     for idx in tqdm(batches, desc=f"evaluate {name}", unit="batch", disable=not progress):
         pairs = [(i, frames[i]) for i in idx]
@@ -79,28 +83,16 @@ def evaluate_dataset(
         Ks = np.stack([f.K for f in batch])
         joints = np.stack([f.joints for f in batch])
         tick = time.perf_counter()
-        if tracking and previous is not None:
-            est = estimator.track(images, Ks, joints, previous)
-        else:
-            est = estimator.estimate(
-                images, Ks, joints, sampler=sampler, ddim_steps=ddim_steps, direct_steps=direct_steps
-            )
+        step = tracker.update(images[0], Ks[0], joints[0]) if tracker is not None else None
+        est = step.estimate if step is not None else estimator.estimate(images, Ks, joints, **full)
         result.seconds += time.perf_counter() - tick
-        previous = est.poses if est.in_view.all() else None
         pred = estimator.robot.keypoints(joints, est.poses)
         gt = np.stack([f.keypoints_3d for f in batch])
         adds = add_per_frame(pred, gt)
         adds[~est.in_view] = np.inf
         for j, frame in enumerate(batch):
             result.adds.append(float(adds[j]))
-            result.frames.append(
-                {
-                    "frame": frame.name,
-                    "add_m": float(adds[j]) if np.isfinite(adds[j]) else None,
-                    "camera_from_base": est.poses[j].tolist(),
-                    "in_view": bool(est.in_view[j]),
-                }
-            )
+            result.frames.append(frame_record(frame, float(adds[j]), est, j, step))
         for j, i in enumerate(idx):
             if i in overlay_frames and overlay_dir is not None:
                 _denoising_overlay(
@@ -112,13 +104,31 @@ def evaluate_dataset(
                     overlay_dir / f"{name}_{frame_label(batch[j])}.png",
                 )
     if not result.adds:
-        raise Monose3Error(
-            f"no usable frame in {name}: all {len(result.skipped)} were skipped (first: {result.skipped[0]['frame']}: "
-            f"{result.skipped[0]['reason']})"
-            if result.skipped
-            else f"no frames to evaluate in {name}; give a DREAM or RoboKeyGen folder with frames"
-        )
+        raise no_usable_frame(name, result.skipped)
     return result
+
+
+def no_usable_frame(name: str, skipped: list[dict]) -> Monose3Error:
+    """The error for a dataset of which no frame could be evaluated."""
+    if skipped:
+        first = skipped[0]
+        return Monose3Error(
+            f"no usable frame in {name}: all {len(skipped)} were skipped (first: {first['frame']}: {first['reason']})"
+        )
+    return Monose3Error(f"no frames to evaluate in {name}; give a DREAM or RoboKeyGen folder with frames")
+
+
+def frame_record(frame, add: float, est: Estimate, j: int, step: TrackStep | None) -> dict:
+    """The JSON record of frame ``j`` of ``est`` (with the tracking policy's mode and reason)."""
+    record = {
+        "frame": frame.name,
+        "add_m": add if np.isfinite(add) else None,
+        "camera_from_base": est.poses[j].tolist(),
+        "in_view": bool(est.in_view[j]),
+    }
+    if step is not None:
+        record.update(mode=step.mode, reason=step.reason)
+    return record
 
 
 def frame_label(frame) -> str:

@@ -1,16 +1,7 @@
 """``monose3 track``: the pose over a sequence, one cheap step per frame (the paper's tracking).
 
-The first frame gets the full reverse process (``inference.ddim_steps`` + ``direct_steps``,
-10 network steps by default); every next frame starts from the previous estimate and takes
-one step at a small timestep (:meth:`PoseEstimator.track`, about 10x faster). Tracking can
-lose the robot, so a frame is re-initialised with the full process when
-
-* the previous estimate was out of view ("lost"),
-* the 1-step update puts the robot outside the image ("out of view"),
-* the 1-step update moved the robot's keypoints by more than ``max_step_mm`` on average or
-  rotated the pose by more than ``max_step_deg`` ("jump": between consecutive frames the
-  pose should barely change, so a big step means the update is not to be trusted), or
-* ``reinit_every`` frames passed since the last full estimate ("periodic", off by default).
+The policy (full estimate first, then one step per frame, re-initialised on loss, jumps and
+periodically) is :mod:`monose3.method.tracking`'s, shared with ``monose3 evaluate --sampler tracking``.
 
 Inputs: ``--frames DIR`` (a DREAM folder, whose ground truth gives the ADD of every frame, or
 the plain folder of ``monose3 calibrate``: ``NNNN.png`` + ``NNNN.joints.json`` + ``camera.json``),
@@ -48,8 +39,8 @@ import cv2
 import numpy as np
 
 from monose3.atomic import atomic_path, write_text
+from monose3.data.frame import Frame
 from monose3.data.frames import (
-    ImageFrame,
     format_skipped,
     load_frames,
     load_joints_csv,
@@ -58,18 +49,13 @@ from monose3.data.frames import (
 )
 from monose3.data.inputs import load_camera
 from monose3.errors import Monose3Error
-from monose3.geometry.rotations import rotation_angle
+from monose3.method.tracking import MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 from monose3.report.metrics import FAILURE_MM
 from monose3.report.overlays import pose_overlays, save_animation
 from monose3.robot import RobotModel
 
-# A 1-step update that moves the robot more than this between two frames is not trusted.
-MAX_STEP_MM = 50.0
-MAX_STEP_DEG = 10.0
 GIF_TILE_WIDTH = 320
 PRINT_ALL_FRAMES = 40
-
-MODE_FULL, MODE_TRACK = "full", "track"
 
 
 @dataclass
@@ -103,25 +89,16 @@ class TrackFrame:
         }
 
 
-def _keypoint_motion_mm(robot: RobotModel, joints: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    """Mean distance (mm) the robot's keypoints move between poses ``a`` and ``b`` (camera frame)."""
-    kp = robot.keypoints(np.asarray(joints, np.float64)[None])[0]
-    pa = kp @ a[:3, :3].T + a[:3, 3]
-    pb = kp @ b[:3, :3].T + b[:3, 3]
-    return float(1000.0 * np.linalg.norm(pa - pb, axis=1).mean())
-
-
 def track_sequence(
     estimator,
     frames_iter: Iterable,
-    max_step_mm: float = MAX_STEP_MM,
-    max_step_deg: float = MAX_STEP_DEG,
-    reinit_every: int | None = None,
+    policy: TrackingPolicy | None = None,
     on_frame: Callable[[object, np.ndarray, TrackFrame], None] | None = None,
     skipped: list[dict] | None = None,
 ) -> list[TrackFrame]:
     """Track the camera-from-base pose over ``frames_iter`` (objects with ``name``, ``K``,
-    ``joints``, ``load_image()``; with ``keypoints_3d`` the ADD is filled in).
+    ``joints``, ``load_image()``; with ``keypoints_3d`` the ADD is filled in) with the shared
+    :class:`~monose3.method.tracking.Tracker` and ``policy``.
 
     ``on_frame(frame, image, result)`` is called after each frame (for streaming output and
     overlays without keeping the images). Returns one :class:`TrackFrame` per usable frame; a
@@ -129,51 +106,32 @@ def track_sequence(
     appended to ``skipped`` as ``{"frame", "reason"}``.
     """
     skipped = [] if skipped is None else skipped
-    if reinit_every is not None and reinit_every < 1:
-        raise Monose3Error(f"reinit_every must be at least 1 (or None), got {reinit_every}")
+    tracker = Tracker(estimator, policy)
     robot: RobotModel = estimator.robot
     out: list[TrackFrame] = []
-    previous: np.ndarray | None = None
-    since_full = 0
     for index, frame in enumerate(frames_iter):
         try:
             image = frame.load_image()
         except Monose3Error as err:
             skipped.append({"frame": str(frame.name), "reason": str(err)})
             continue
-        K = np.asarray(frame.K, np.float64)[None]
-        q = np.asarray(frame.joints, np.float64)[None]
         tick = time.perf_counter()
-        step_mm = step_deg = None
-        reason = None
-        if previous is None:
-            reason = "first" if not out else "lost"
-        elif reinit_every is not None and since_full >= reinit_every:
-            reason = "periodic"
-        else:
-            est = estimator.track([image], K, q, previous[None])
-            pose = est.poses[0]
-            step_mm = _keypoint_motion_mm(robot, q[0], previous, pose)
-            step_deg = float(np.degrees(rotation_angle(previous[:3, :3], pose[:3, :3])))
-            if not est.in_view[0]:
-                reason = "out of view"
-            elif step_mm > max_step_mm or step_deg > max_step_deg:
-                reason = "jump"
-            else:
-                result = TrackFrame(index, str(frame.name), pose, MODE_TRACK, None, True, step_mm, step_deg)
-        if reason is not None:
-            est = estimator.estimate([image], K, q)
-            result = TrackFrame(
-                index, str(frame.name), est.poses[0], MODE_FULL, reason, bool(est.in_view[0]), step_mm, step_deg
-            )
-            since_full = 0
-        since_full += 1
+        step = tracker.update(image, frame.K, frame.joints)
+        result = TrackFrame(
+            index,
+            str(frame.name),
+            step.camera_from_base,
+            step.mode,
+            step.reason,
+            step.in_view,
+            step.step_mm,
+            step.step_deg,
+        )
         result.seconds = time.perf_counter() - tick
-        previous = result.camera_from_base if result.in_view else None
         gt = getattr(frame, "keypoints_3d", None)
         if gt is not None:
             if result.in_view:
-                kp = robot.keypoints(q, result.camera_from_base[None])[0]
+                kp = robot.keypoints(np.asarray(frame.joints, np.float64)[None], result.camera_from_base[None])[0]
                 result.add_mm = float(1000.0 * np.linalg.norm(kp - np.asarray(gt), axis=1).mean())
             else:
                 result.add_mm = float("inf")
@@ -245,7 +203,7 @@ def count_video_frames(path: str | Path) -> int:
 
 def video_frames(
     video: str | Path, camera_file: str | Path, joints: np.ndarray, names: Sequence[str] | None = None
-) -> Iterator[ImageFrame]:
+) -> Iterator[Frame]:
     """The frames of a video with their joints. The camera file and the frame count are checked
     here, before anything is estimated; the frames are then decoded one at a time."""
     camera = load_camera(camera_file)
@@ -256,10 +214,10 @@ def video_frames(
             "give exactly one row (file) of joints per video frame"
         )
 
-    def frames() -> Iterator[ImageFrame]:
+    def frames() -> Iterator[Frame]:
         for i, image in enumerate(read_video(video)):
             name = names[i] if names is not None and names[i] else f"{i:06d}"
-            yield ImageFrame(name, camera.K, camera.size, joints[i], image=image)
+            yield Frame(name, camera.K, camera.size, joints[i], image=image)
 
     return frames()
 
@@ -315,6 +273,17 @@ def format_summary(results: Sequence[TrackFrame], max_frames: int = PRINT_ALL_FR
     return "\n".join(lines)
 
 
+def overlay_tile(estimator, frame, image: np.ndarray, result: TrackFrame) -> np.ndarray:
+    """The GIF tile of one frame: the estimate's overlay, labelled with the mode and the ADD."""
+    text = f"{result.name} {result.mode}" + (f" ({result.reason})" if result.reason else "")
+    if result.add_mm is not None and math.isfinite(result.add_mm):
+        text += f" ADD {result.add_mm:.0f} mm"
+    gt = getattr(frame, "keypoints_3d", None)
+    pose = result.camera_from_base
+    renderer = estimator.renderer
+    return pose_overlays(renderer, [image], [frame.K], [frame.joints], [pose], [text], [gt], GIF_TILE_WIDTH)[0]
+
+
 def run_track(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
     from monose3.apps.arguments import check_track
@@ -353,29 +322,13 @@ def run_track(args: argparse.Namespace) -> int:
                     + ["" if d["add_mm"] is None else f"{d['add_mm']:.3f}"]
                 )
                 if args.gif_every and result.index % args.gif_every == 0:
-                    text = f"{result.name} {result.mode}" + (f" ({result.reason})" if result.reason else "")
-                    if result.add_mm is not None and math.isfinite(result.add_mm):
-                        text += f" ADD {result.add_mm:.0f} mm"
-                    gt = getattr(frame, "keypoints_3d", None)
-                    tiles.extend(
-                        pose_overlays(
-                            estimator.renderer,
-                            [image],
-                            [frame.K],
-                            [frame.joints],
-                            [result.camera_from_base],
-                            [text],
-                            [gt],
-                            GIF_TILE_WIDTH,
-                        )
-                    )
+                    tiles.append(overlay_tile(estimator, frame, image, result))
 
+            policy = TrackingPolicy(args.max_step_mm, args.max_step_deg, args.reinit_every)
             results = track_sequence(
                 estimator,
                 frames,
-                max_step_mm=args.max_step_mm,
-                max_step_deg=args.max_step_deg,
-                reinit_every=args.reinit_every,
+                policy,
                 on_frame=on_frame,
                 skipped=skipped,
             )

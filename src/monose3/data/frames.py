@@ -30,8 +30,7 @@ CAMERA_FILES = ("camera.json", "camera.yaml", "camera.yml")
 IGNORED_CSV_COLUMNS = ("time", "timestamp", "stamp")
 NAME_CSV_COLUMNS = ("frame", "name")
 
-# Transitional: the one frame type under its old name here, until the commands import Frame.
-ImageFrame = Frame
+
 
 
 def _natural_key(name: str) -> list:

@@ -160,5 +160,3 @@ class Denoiser(nn.Module):
         b, _, h, w = render.shape
         x = torch.cat([_to_net_range(render), _to_net_range(crop), emb[:, :, None, None].expand(b, -1, h, w)], dim=1)
         return self.net(x)
-
-

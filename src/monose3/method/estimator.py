@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,9 +19,9 @@ from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser, pose_input
-from monose3.method.pose_space import base_frame, centroid_frame, denormalize_pose, normalize_pose
+from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
-from monose3.method.scheduler import NoiseSchedule, ddim_step
+from monose3.method.scheduler import DDIMScheduler
 from monose3.method.update import apply_update, raw_to_update
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
@@ -47,7 +49,9 @@ class Estimate:
 
 
 @dataclass
-class _Batch:
+class PreparedBatch:
+    """The inputs of :meth:`PoseEstimator.estimate` brought to the network's image size, one row per hypothesis."""
+
     images: torch.Tensor  # [N, 3, H, W] standardized, one row per hypothesis
     K: torch.Tensor  # [N, 3, 3] of the standardized image
     size: torch.Tensor  # [N, 2]
@@ -64,7 +68,7 @@ class PoseEstimator:
         self.config = config
         self.device = torch.device(device)
         self.robot = RobotModel(config.robot)
-        self.schedule = NoiseSchedule(config.diffusion)
+        self.scheduler = DDIMScheduler(config.diffusion)
         self.renderer = RobotRenderer(self.robot, self.device)
         self.timings: dict[str, float] = defaultdict(float)
 
@@ -74,7 +78,8 @@ class PoseEstimator:
 
     # ---- inputs ---------------------------------------------------------------------------
 
-    def _prepare(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, hyps: int) -> _Batch:
+    def prepare(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, hyps: int) -> PreparedBatch:
+        """Standardise the images (and their K) to ``network.input_size``; ``hyps`` rows per image."""
         size = self.config.network.input_size
         std_images, std_K = [], []
         for img, K in zip(images, Ks, strict=True):
@@ -85,7 +90,7 @@ class PoseEstimator:
         points = self.robot.surface_points(joints)
         centroid = self.robot.centroid(points)
         rep = lambda x: x.repeat_interleave(hyps, 0)  # noqa: E731
-        return _Batch(
+        return PreparedBatch(
             images=rep(torch.stack(std_images)).to(self.device),  # crops then run on the model's device
             K=rep(torch.from_numpy(np.stack(std_K))),
             size=torch.tensor([size], dtype=torch.float64).repeat(len(images) * hyps, 1),
@@ -94,7 +99,7 @@ class PoseEstimator:
             centroid=rep(torch.from_numpy(centroid)),
         )
 
-    def initial_poses(self, batch: _Batch) -> torch.Tensor:
+    def initial_poses(self, batch: PreparedBatch) -> torch.Tensor:
         """RoboPose's identity initialisation (camera-from-centroid): fixed rotation, the robot
         fitted to a box over the central 3/5 of the image."""
         n = len(batch.K)
@@ -110,45 +115,31 @@ class PoseEstimator:
 
     # ---- one network evaluation -----------------------------------------------------------
 
-    @torch.no_grad()
-    def _predict_x0(self, batch: _Batch, pose_ref: torch.Tensor, t: int) -> torch.Tensor:
-        """The denoiser's H_0 prediction (Eq. 9) at ``pose_ref`` = H_t, camera-from-centroid."""
-        net = self.config.network
+    @contextmanager
+    def timed(self, key: str) -> Iterator[None]:
+        """Add the seconds the block takes to ``self.timings[key]``."""
         tick = time.perf_counter()
-        boxes, K_crop = crop_geometry(pose_ref, batch.points_ref, batch.K, net.render_size)
-        self.timings["crop"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        pose_base = base_frame(pose_ref, batch.centroid).to(self.device)
-        renders = self.renderer.render(batch.joints, pose_base, K_crop.to(self.device), net.render_size).rgb
-        self.timings["render"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
-        self.timings["crop"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
-        pose = pose_input(net, pose_ref.to(self.device), K_crop.to(self.device), self.config.diffusion.c_z)
-        raw = self.model(renders.to(self.device), crops.to(self.device), steps, pose).double().cpu()
-        self.timings["network"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
-        out = apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)
-        self.timings["update"] += time.perf_counter() - tick
-        return out
+        yield
+        self.timings[key] += time.perf_counter() - tick
 
-    def _ddim(self, batch: _Batch, pose_ref: torch.Tensor, t: int, t_prev: int, eta: float, gen) -> torch.Tensor:
-        """One timestep-aware reverse step (Alg. 2): predict H_0, then DDIM in the normalised space (Eq. 8)."""
-        x0_pose = self._predict_x0(batch, pose_ref, t)
-        tick = time.perf_counter()
-        c_z = self.config.diffusion.c_z
-        x_t = normalize_pose(pose_ref, batch.K, batch.size, c_z)
-        x_0 = normalize_pose(x0_pose, batch.K, batch.size, c_z)
-        n = len(pose_ref)
-        noise = torch.randn(x_t.shape, generator=gen, dtype=x_t.dtype) if gen is not None else None
-        x_prev = ddim_step(x_t, x_0, torch.full((n,), t), torch.full((n,), t_prev), self.schedule, eta, noise)
-        x_prev[:, 8] = x_prev[:, 8].clamp_min(0.05 - c_z)
-        out = denormalize_pose(x_prev, batch.K, batch.size, c_z)
-        self.timings["update"] += time.perf_counter() - tick
-        return out
+    @torch.no_grad()
+    def predict_x0(self, batch: PreparedBatch, pose_ref: torch.Tensor, t: int) -> torch.Tensor:
+        """The denoiser's H_0 prediction (Eq. 9) at ``pose_ref`` = H_t, camera-from-centroid ``[N, 4, 4]``."""
+        net = self.config.network
+        with self.timed("crop"):
+            boxes, K_crop = crop_geometry(pose_ref, batch.points_ref, batch.K, net.render_size)
+        with self.timed("render"):
+            pose_base = base_frame(pose_ref, batch.centroid).to(self.device)
+            renders = self.renderer.render(batch.joints, pose_base, K_crop.to(self.device), net.render_size).rgb
+        with self.timed("crop"):
+            crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
+        with self.timed("network"):
+            steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
+            pose = pose_input(net, pose_ref.to(self.device), K_crop.to(self.device), self.config.diffusion.c_z)
+            raw = self.model(renders.to(self.device), crops.to(self.device), steps, pose).double().cpu()
+        with self.timed("update"):
+            v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
+            return apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)
 
     # ---- public API -----------------------------------------------------------------------
 
@@ -176,7 +167,7 @@ class PoseEstimator:
         direct_steps = inf.direct_steps if direct_steps is None else direct_steps
         self.timings = defaultdict(float)
         start = time.perf_counter()
-        batch = self._prepare(images, Ks, joints, hypotheses)
+        batch = self.prepare(images, Ks, joints, hypotheses)
         gen = torch.Generator().manual_seed(seed) if stochastic else None
         if init_poses is None:
             pose = self.initial_poses(batch)
@@ -187,20 +178,21 @@ class PoseEstimator:
         if stochastic:
             pose = self._perturb(pose, gen, start_t)
         history = [pose]
-        if sampler == "revdiff":
-            steps = self.schedule.ddim_timesteps(ddim_steps, start_t)
-            for i, t in enumerate(steps):
-                t_prev = steps[i + 1] if i + 1 < len(steps) else 0
-                pose = self._ddim(batch, pose, t, t_prev, inf.eta, gen)
+        if sampler == "revdiff":  # Alg. 2: K timestep-aware DDIM steps (Eq. 8) over the scheduler
+            steps = self.scheduler.timesteps(ddim_steps, start_t)
+            for t, t_prev in zip(steps, [*steps[1:], 0], strict=True):
+                x0 = self.predict_x0(batch, pose, t)
+                with self.timed("update"):
+                    pose = self.scheduler.step(x0, t, t_prev, pose, batch.K, batch.size, inf.eta, gen)
                 history.append(pose)
         elif sampler == "directreg":
             direct_steps += ddim_steps
         else:
             raise ValueError(f"unknown sampler {sampler!r} (revdiff or directreg)")
         for _ in range(direct_steps):
-            pose = self._predict_x0(batch, pose, 1)
+            pose = self.predict_x0(batch, pose, 1)
             history.append(pose)
-        result = self._finish(batch, history, len(images), hypotheses)
+        result = self.finish(batch, history, len(images), hypotheses)
         result.timings["total"] = time.perf_counter() - start
         return result
 
@@ -223,8 +215,8 @@ class PoseEstimator:
         """Spread the chains' starts: 0.15 rad per axis and 5 % of the translation from t = T,
         shrunk like the forward process's noise std sqrt(1 - alpha_bar_t) when the chains start
         lower (refining a prior), so a good prior is not thrown further than the noise at t."""
-        ab = self.schedule.alpha_bar
-        t = self.schedule.num_steps if start_t is None else start_t
+        ab = self.scheduler.alpha_bar
+        t = self.scheduler.num_steps if start_t is None else start_t
         scale = float(torch.sqrt((1 - ab[t]) / (1 - ab[-1])))
         n = len(pose)
         rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen, dtype=pose.dtype) * 0.15 * scale)
@@ -233,7 +225,9 @@ class PoseEstimator:
         out[:, :3, 3] = pose[:, :3, 3] * (1 + 0.05 * scale * torch.randn(n, 3, generator=gen, dtype=pose.dtype))
         return out
 
-    def _finish(self, batch: _Batch, history: list[torch.Tensor], n_images: int, hyps: int) -> Estimate:
+    def finish(self, batch: PreparedBatch, history: list[torch.Tensor], n_images: int, hyps: int) -> Estimate:
+        """The :class:`Estimate` of the poses ``history`` (camera-from-centroid, per step): each
+        image's medoid hypothesis, the spread of its hypotheses and whether it is in view."""
         to_base = [base_frame(p, batch.centroid).numpy().reshape(n_images, hyps, 4, 4) for p in history]
         final = to_base[-1]
         kps = self.robot.keypoints(batch.joints[::hyps])  # [B, K, 3]

@@ -13,7 +13,6 @@ def point_distance(pose_a: torch.Tensor, pose_b: torch.Tensor, points: torch.Ten
     return (transform_points(pose_a, points) - transform_points(pose_b, points)).abs().sum(-1).mean(-1)
 
 
-
 def disentangled_parts(
     raw: torch.Tensor,
     pose_ref_t: torch.Tensor,
@@ -31,7 +30,6 @@ def disentangled_parts(
         "rot": point_distance(pose_ref_0, apply_update(pose_ref_t, g_xy, d_rot, g_z, K_crop), points_ref),
         "z": point_distance(pose_ref_0, apply_update(pose_ref_t, g_xy, g_rot, v_z, K_crop), points_ref),
     }
-
 
 
 def disentangled_loss(

@@ -94,7 +94,7 @@ def noisy_views(
     size = torch.tensor([net.input_size], dtype=torch.float64).repeat(n, 1)
     pose_ref_0 = centroid_frame(pose.double(), centroid)
     t = torch.randint(1, config.diffusion.num_steps + 1, (n,), generator=generator)
-    pose_ref_t = noiser(pose_ref_0, t, K.double(), size, generator)
+    pose_ref_t = noiser.add_noise(pose_ref_0, t, K.double(), size, generator)
     boxes, K_crop = crop_geometry(pose_ref_t, points_ref, K.double(), net.render_size)
     return NoisyViews(t, pose_ref_0, pose_ref_t, centroid, points_ref, boxes, K_crop)
 
