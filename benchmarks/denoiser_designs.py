@@ -56,11 +56,11 @@ Pool = dict[str, torch.Tensor]
 def build_pool(data_dir: str, config: Config, num: int, seed: int) -> dict[str, np.ndarray]:
     """``num`` training samples (steps 0.. of a run with this seed), images as uint8; ``data_dir``
     is a DREAM folder or ``"synthetic"``."""
-    from monose3.apps.train import load_frames
+    from monose3.data.datasets import load_datasets
     from monose3.training.loop import BatchMaker, Sources
 
     config = with_section(config, "train", seed=seed, num_workers=0)
-    sources = Sources(synthetic=True) if data_dir == "synthetic" else Sources(load_frames([data_dir], config.robot))
+    sources = Sources(synthetic=True) if data_dir == "synthetic" else Sources(load_datasets([data_dir], config.robot))
     maker = BatchMaker(config, sources, torch.device("cpu"), 0, 0, 1)
     keep = np.random.default_rng(0).choice(2000, NUM_POINTS, replace=False)
     batches = [maker.batch(step)[1] for step in range(-(-num // config.train.batch_size))]

@@ -5,26 +5,10 @@ multi-GPU / multi-node through ``torchrun`` (DistributedDataParallel)."""
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from monose3.apps.arguments import add_train_arguments  # noqa: F401 - the options live in the torch-free commands
-from monose3.errors import Monose3Error
+from monose3.data.datasets import load_datasets
 from monose3.method.config import Config, get_preset, with_section
 from monose3.robot import robot_reference
-
-
-def load_frames(data_dirs: list[str | Path], robot: str) -> list:
-    from monose3.data.datasets import open_dataset
-
-    frames: list = []
-    for d in data_dirs:
-        frames.extend(open_dataset(d, robot))
-    if not frames:
-        raise Monose3Error(
-            f"no usable frames in {', '.join(map(str, data_dirs))}; "
-            "generate some with `monose3 generate` or use --synthetic"
-        )
-    return frames
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -56,7 +40,7 @@ def run_train(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     checked = getattr(args, "_checked", None)
-    frames = checked.frames if checked else (load_frames(args.data, config.robot) if args.data else [])
+    frames = checked.frames if checked else (load_datasets(args.data, config.robot) if args.data else [])
     sources = Sources(frames, args.synthetic, args.synthetic_ratio if frames else 1.0, args.profile, args.backgrounds)
     result = train(
         config,

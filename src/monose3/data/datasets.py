@@ -34,3 +34,16 @@ def open_dataset(path: str | Path, robot: RobotModel | RobotSpec | str = "panda"
     if detect_layout(path) == "robokeygen":
         return RoboKeyGenDataset(path, robot)
     return DreamDataset(path, robot, units)
+
+
+def load_datasets(data_dirs: list[str | Path], robot: RobotModel | RobotSpec | str) -> list:
+    """Every frame of the given dataset folders, in order; refuses when there is none."""
+    frames: list = []
+    for d in data_dirs:
+        frames.extend(open_dataset(d, robot))
+    if not frames:
+        raise Monose3Error(
+            f"no usable frames in {', '.join(map(str, data_dirs))}; "
+            "generate some with `monose3 generate` or use --synthetic"
+        )
+    return frames

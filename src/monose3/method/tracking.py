@@ -16,13 +16,16 @@ is re-initialised with the full process when
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from monose3.errors import Monose3Error
 from monose3.geometry.rotations import rotation_angle
-from monose3.method.estimator import Estimate
 from monose3.robot import RobotModel
+
+if TYPE_CHECKING:  # the estimator imports torch; the policy's constants are read by the torch-free options
+    from monose3.method.estimator import Estimate
 
 # A 1-step update that moves the robot more than this between two frames is not trusted.
 MAX_STEP_MM = 50.0
