@@ -200,82 +200,24 @@ def calibrate(
     if chains < 1 or batch_size < 1:
         raise Monose3Error(f"chains and batch size must be at least 1, got {chains} and {batch_size}")
     start = time.perf_counter()
-    robot: RobotModel = estimator.robot
-    results: list[FrameResult] = []
     skipped = skipped_annotations(frames)
-    usable: list = []
-    batches = [range(i, min(i + batch_size, len(frames))) for i in range(0, len(frames), batch_size)]
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(frames), desc="calibrate", unit="frame")
-    for b, idx in enumerate(batches):
-        batch, images = load_images([frames[i] for i in idx], skipped)
-        if bar is not None:
-            bar.update(len(idx) - len(batch))
-        if not batch:
-            continue
-        usable.extend(batch)
-        est = estimator.estimate(
-            images,
-            np.stack([np.asarray(f.K, np.float64) for f in batch]),
-            np.stack([np.asarray(f.joints, np.float64) for f in batch]),
-            hypotheses=chains,
-            stochastic=chains > 1,
-            seed=seed + b,
-        )
-        for j, f in enumerate(batch):
-            results.append(
-                FrameResult(
-                    name=str(f.name),
-                    camera_from_base=np.asarray(est.poses[j], np.float64),
-                    in_view=bool(est.in_view[j]),
-                    chain_spread_mm=float(est.spread_mm[j]) if chains > 1 else float("nan"),
-                    chain_spread_deg=float(est.spread_deg[j]) if chains > 1 else float("nan"),
-                )
-            )
-        if bar is not None:
-            bar.update(len(batch))
-    if bar is not None:
-        bar.close()
+    usable, results = estimate_frames(estimator, frames, chains, batch_size, seed, skipped, progress)
     if not results:
         first = skipped[0] if skipped else {"frame": "-", "reason": "-"}
         raise Monose3Error(
             f"no usable frame: all {len(skipped)} were skipped (first: {first['frame']}: {first['reason']})"
         )
-
-    for r in results:
-        if not r.in_view or not np.all(np.isfinite(r.camera_from_base)):
-            r.reason = REASON_OUT_OF_VIEW
-        elif chains > 1 and r.chain_spread_mm > unreliable_mm:
-            r.reason = REASON_UNRELIABLE
-    candidates = [i for i, r in enumerate(results) if r.reason is None]
-    if not candidates:
-        counts = ", ".join(f"{n} {why}" for why, n in Counter(r.reason for r in results).items())
-        raise Monose3Error(
-            f"all {len(results)} frames were rejected ({counts}); check that the robot is visible, that the joints "
-            "and intrinsics belong to these images and that the checkpoint is for this robot"
-        )
-    poses = np.stack([results[i].camera_from_base for i in candidates])
-    consensus = robust_consensus(poses, consensus_k, min_threshold_mm, min_threshold_deg)
+    candidates = reject_unusable(results, chains, unreliable_mm)
+    consensus = robust_consensus(
+        np.stack([results[i].camera_from_base for i in candidates]), consensus_k, min_threshold_mm, min_threshold_deg
+    )
     fused = consensus.pose
     for i, inlier in zip(candidates, consensus.inliers, strict=True):
         results[i].used = bool(inlier)
         if not inlier:
             results[i].reason = REASON_CONSENSUS
-    all_poses = np.stack([r.camera_from_base for r in results])
-    finite = np.all(np.isfinite(all_poses), axis=(1, 2))
-    res_mm = np.full(len(results), np.nan)
-    res_deg = np.full(len(results), np.nan)
-    if finite.any():
-        res_mm[finite], res_deg[finite] = pose_residuals(all_poses[finite], fused)
-    for r, mm, deg in zip(results, res_mm, res_deg, strict=True):
-        r.residual_mm, r.residual_deg = float(mm), float(deg)
-
-    gt = None
-    if _has_ground_truth(usable):
-        gt = _ground_truth_report(robot, usable, results, fused)
+    set_residuals(results, fused)
+    gt = ground_truth_report(estimator.robot, usable, results, fused) if _has_ground_truth(usable) else None
     return CalibrationResult(
         camera_from_base=fused,
         frames=results,
@@ -288,7 +230,79 @@ def calibrate(
     )
 
 
-def _ground_truth_report(robot: RobotModel, frames: Sequence, results: list[FrameResult], fused: np.ndarray) -> dict:
+def estimate_frames(
+    estimator, frames: Sequence, chains: int, batch_size: int, seed: int, skipped: list[dict], progress: bool
+) -> tuple[list, list[FrameResult]]:
+    """Single-frame estimates of every readable frame, ``batch_size`` at a time; unreadable
+    frames are appended to ``skipped``. Returns the frames used and their results."""
+    results: list[FrameResult] = []
+    usable: list = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(frames), desc="calibrate", unit="frame")
+    for b, first in enumerate(range(0, len(frames), batch_size)):
+        chunk = [frames[i] for i in range(first, min(first + batch_size, len(frames)))]
+        batch, images = load_images(chunk, skipped)
+        usable.extend(batch)
+        if batch:
+            est = estimator.estimate(
+                images,
+                np.stack([np.asarray(f.K, np.float64) for f in batch]),
+                np.stack([np.asarray(f.joints, np.float64) for f in batch]),
+                hypotheses=chains,
+                stochastic=chains > 1,
+                seed=seed + b,
+            )
+            results.extend(_frame_result(f, est, j, chains) for j, f in enumerate(batch))
+        if bar is not None:
+            bar.update(len(chunk))
+    if bar is not None:
+        bar.close()
+    return usable, results
+
+
+def _frame_result(frame, est, j: int, chains: int) -> FrameResult:
+    return FrameResult(
+        name=str(frame.name),
+        camera_from_base=np.asarray(est.poses[j], np.float64),
+        in_view=bool(est.in_view[j]),
+        chain_spread_mm=float(est.spread_mm[j]) if chains > 1 else float("nan"),
+        chain_spread_deg=float(est.spread_deg[j]) if chains > 1 else float("nan"),
+    )
+
+
+def reject_unusable(results: list[FrameResult], chains: int, unreliable_mm: float) -> list[int]:
+    """Mark estimates out of view, or (with several chains) whose chains disagree; the indices
+    of the rest. Raises Monose3Error when none is left."""
+    for r in results:
+        if not r.in_view or not np.all(np.isfinite(r.camera_from_base)):
+            r.reason = REASON_OUT_OF_VIEW
+        elif chains > 1 and r.chain_spread_mm > unreliable_mm:
+            r.reason = REASON_UNRELIABLE
+    candidates = [i for i, r in enumerate(results) if r.reason is None]
+    if not candidates:
+        counts = ", ".join(f"{n} {why}" for why, n in Counter(r.reason for r in results).items())
+        raise Monose3Error(
+            f"all {len(results)} frames were rejected ({counts}); check that the robot is visible, that the joints "
+            "and intrinsics belong to these images and that the checkpoint is for this robot"
+        )
+    return candidates
+
+
+def set_residuals(results: list[FrameResult], fused: np.ndarray) -> None:
+    """Each frame's translation (mm) and rotation (deg) residual to the fused pose (NaN if it has none)."""
+    poses = np.stack([r.camera_from_base for r in results])
+    finite = np.all(np.isfinite(poses), axis=(1, 2))
+    res_mm, res_deg = np.full(len(results), np.nan), np.full(len(results), np.nan)
+    if finite.any():
+        res_mm[finite], res_deg[finite] = pose_residuals(poses[finite], fused)
+    for r, mm, deg in zip(results, res_mm, res_deg, strict=True):
+        r.residual_mm, r.residual_deg = float(mm), float(deg)
+
+
+def ground_truth_report(robot: RobotModel, frames: Sequence, results: list[FrameResult], fused: np.ndarray) -> dict:
     """Error of the fused pose against ground truth, next to the single-frame errors it replaces."""
     gt_poses = np.stack([np.asarray(f.pose, np.float64) for f in frames])
     gt_ref = robust_pose_average(gt_poses)
