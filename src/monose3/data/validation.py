@@ -33,7 +33,7 @@ import numpy as np
 
 from monose3.data.inputs import check_image_camera, load_joints, pose_from_obj
 from monose3.errors import Monose3Error
-from monose3.geometry.camera import Intrinsics, check_K
+from monose3.geometry.camera import Intrinsics, check_K, project
 from monose3.robot import RobotModel
 
 SAMPLERS = ("revdiff", "directreg")
@@ -182,7 +182,7 @@ def check_prior(
             f"{source} puts the robot {dist:.3g} m from the camera, less than {lo:g} m; give camera_from_base in metres"
         )
     w, h = image_size
-    u, v = (np.asarray(K) @ centre)[:2] / centre[2] if centre[2] > 0 else (-1.0, -1.0)
+    u, v = project(centre[None], np.asarray(K, np.float64))[0] if centre[2] > 0 else (-1.0, -1.0)
     if not (0 <= u < w and 0 <= v < h):
         raise Monose3Error(
             f"{source}: the prior pose puts the robot outside the image; give camera_from_base (not its inverse), "
