@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 from conftest import look_at
 
-from monose3.data.frames import ImageFrame
 from monose3.apps.cli import main
 from monose3.apps.track import (
     MODE_FULL,
@@ -23,6 +22,7 @@ from monose3.apps.track import (
     video_frames,
 )
 from monose3.data.dream import write_frame
+from monose3.data.frames import ImageFrame
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset, with_section
 from monose3.method.denoiser import Denoiser
