@@ -61,13 +61,26 @@ def test_estimate_writes_pose_files_and_overlay(scene, capsys):
     assert "camera_from_base" in capsys.readouterr().out
 
 
-def test_python_api_mirrors_the_cli(scene):
+def test_python_api_mirrors_the_cli(scene, tmp_path):
+    """``estimate_pose`` on the frame's own arrays gives what ``monose3 estimate`` writes from the
+    user's files (image, joints.json, camera.json) for the same checkpoint and chains."""
     d, frame = scene
     est = load_estimator(d / "panda.pt")
-    result = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=3)
-    est.close()
+    try:
+        result = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=3)
+    finally:
+        est.close()
     assert result.camera_from_base.shape == (4, 4) and 0 <= result.confidence <= 1
     assert result.estimate.hypotheses.shape == (1, 3, 4, 4)
+    assert _estimate(d, "--chains", "3", "--out", str(tmp_path)) == 0
+    cli = json.loads((tmp_path / "pose.json").read_text())
+    api = result.to_dict()
+    assert set(cli) == set(api)
+    np.testing.assert_allclose(cli["camera_from_base"], result.camera_from_base, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(cli["base_from_camera"], result.base_from_camera, rtol=0, atol=1e-9)
+    for key in sorted(set(api) - {"camera_from_base", "base_from_camera"}):
+        same = cli[key] == pytest.approx(api[key], rel=1e-9) if isinstance(api[key], float) else cli[key] == api[key]
+        assert same, (key, cli[key], api[key])
 
 
 def _write(d, name, content):

@@ -1,5 +1,5 @@
-"""Camera geometry: projection, RoboPose's crop rule, crop intrinsics_matrix against real crop pixels,
-image standardisation and intrinsics_matrix checks."""
+"""Camera geometry: projection, RoboPose's crop rule, crop intrinsics against real crop pixels,
+image standardisation and intrinsics checks."""
 
 from __future__ import annotations
 
@@ -106,7 +106,7 @@ def test_crop_boxes_not_clamped_to_image():
     assert box[0] < -50 and box[1] < -30 and box[2] > 700 and box[3] > 500
 
 
-# ---- crop intrinsics_matrix ------------------------------------------------------------------------
+# ---- crop intrinsics ---------------------------------------------------------------------------------
 
 
 def _random_boxes(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -135,7 +135,7 @@ def test_crop_intrinsics_is_the_crop_affine_map():
 
 def test_crop_images_pixels_agree_with_crop_intrinsics():
     """Blobs painted at projected points are found, in the roi_align crop, at the projection
-    through the crop intrinsics_matrix: the crop and its intrinsics_matrix share one pixel convention."""
+    through the crop intrinsics: the crop and its intrinsics share one pixel convention."""
     rng = np.random.default_rng(23)
     W, H = 640, 480
     K = intrinsics_matrix(520.0, 515.0, 331.3, 236.8)
@@ -169,7 +169,7 @@ def test_crop_images_pixels_agree_with_crop_intrinsics():
             worst = max(worst, float(np.abs(found - p).max()))
             found_blobs += 1
     assert found_blobs >= 10
-    assert worst < 0.25, f"blob found {worst:.3f} px from the crop-intrinsics_matrix projection"
+    assert worst < 0.25, f"blob found {worst:.3f} px from the crop-intrinsics projection"
 
 
 def test_crop_images_pads_outside_with_zeros():
@@ -182,7 +182,7 @@ def test_crop_images_pads_outside_with_zeros():
 
 def test_crop_of_full_render_matches_render_with_crop_intrinsics(models, renderers, sample_view):
     """RoboPose's loop: crop the 640x480 image around the robot, and render directly with the crop
-    intrinsics_matrix at 320x240: the two masks coincide."""
+    intrinsics at 320x240: the two masks coincide."""
     model, renderer = models["panda"], renderers["panda"]
     rng = np.random.default_rng(24)
     checked = 0

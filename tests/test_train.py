@@ -3,6 +3,7 @@ synthetic scenes and DREAM frames both feed it, checkpoints resume exactly, weig
 a run across machines, the CLI refuses bad input before any work, and DDP runs on CPU (gloo)."""
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -67,14 +68,22 @@ def test_sampler_splits_global_batches_over_ranks():
     assert per_rank[0] == first[0:2] + first[4:6] and per_rank[1] == first[2:4] + first[6:8]
 
 
+OVERFIT_STEPS = 30
+OVERFIT_LR = 3e-4  # at 1e-3 a batch of 4 (batch norm) makes the loss jump around instead of descend
+
+
 def test_overfits_a_fixed_batch(frames):
+    """30 Adam steps on one batch of 4 (tiny network) cut the loss about 8x (measured with seeds
+    0-2: 1.125 -> 0.10-0.15); the bound asks for 4x of the mean of the last five steps, so one
+    noisy step neither passes nor fails it."""
     torch.manual_seed(0)
     config = tiny_config()
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
     model = Denoiser(config.network)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = [train_step(model, opt, batch, config, 1e-3)[0] for _ in range(40)]
-    assert losses[-1] < losses[0] / 4, losses[::10]
+    opt = torch.optim.Adam(model.parameters(), lr=OVERFIT_LR)
+    losses = [train_step(model, opt, batch, config, OVERFIT_LR)[0] for _ in range(OVERFIT_STEPS)]
+    assert all(map(math.isfinite, losses)), losses
+    assert sum(losses[-5:]) / 5 < losses[0] / 4, [round(v, 3) for v in losses[::5]]
 
 
 def test_resume_reproduces_the_uninterrupted_run(frames, tmp_path):
@@ -146,7 +155,7 @@ def test_cli_refuses_to_overwrite_and_resumes(tiny_dream, tmp_path, capsys):
 
 def test_cli_trains_on_synthetic_scenes_for_a_time_budget(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["train", "--synthetic", "--out", str(out), "--batch-size", "2", "--minutes", "0.15"]) == 0
+    assert main(["train", "--synthetic", "--out", str(out), "--batch-size", "2", "--minutes", "0.1"]) == 0
     text = capsys.readouterr().out
     assert "stopped by minutes" in text
     meta = json.loads((out / "weights.json").read_text())
@@ -230,5 +239,7 @@ def test_every_design_trains_and_estimates(frames, design):
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
     assert loss == pytest.approx(parts["xy"] + 3.0 * parts["rot"] + parts["z"], rel=1e-5)
     frame = frames[0]
-    est = PoseEstimator(model, config).estimate([frame.load_image()], frame.K[None], frame.joints[None])
+    estimator = PoseEstimator(model, config)
+    est = estimator.estimate([frame.load_image()], frame.K[None], frame.joints[None], ddim_steps=1, direct_steps=1)
+    estimator.close()
     assert est.poses.shape == (1, 4, 4) and torch.isfinite(torch.from_numpy(est.poses)).all()

@@ -125,7 +125,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
     from monose3.apps.arguments import check_calibrate
 
-    checked = getattr(args, "_checked", None) or check_calibrate(args)  # inputs read before the model loads
+    checked = getattr(args, "checked_inputs", None) or check_calibrate(args)  # inputs read before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
     try:
         frames = checked.frames

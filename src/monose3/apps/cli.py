@@ -41,7 +41,7 @@ def _run(args: argparse.Namespace) -> int:
     from monose3.apps import arguments as commands
 
     checked = getattr(commands, f"check_{args.command}")(args)  # before torch / pybullet are imported
-    args._checked = checked
+    args.checked_inputs = checked
     module = importlib.import_module(COMMANDS[args.command][0])
     return getattr(module, f"run_{args.command}")(args)
 

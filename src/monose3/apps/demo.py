@@ -31,7 +31,7 @@ def pose_errors(robot, joints: np.ndarray, pred: np.ndarray, truth: np.ndarray) 
 def run_demo(args: argparse.Namespace) -> int:
     from monose3.apps.arguments import check_demo
 
-    checked = getattr(args, "_checked", None) or check_demo(args)
+    checked = getattr(args, "checked_inputs", None) or check_demo(args)
     image = load_image(SAMPLE / "image.jpg")
     camera = load_camera(SAMPLE / "camera.json")
     truth = np.asarray(json.loads((SAMPLE / "ground_truth.json").read_text())["camera_from_base"])

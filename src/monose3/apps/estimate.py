@@ -13,7 +13,7 @@ from monose3.report.overlays import save_image
 def run_estimate(args: argparse.Namespace) -> int:
     from monose3.apps.arguments import check_estimate
 
-    inputs = getattr(args, "_checked", None) or check_estimate(args)  # all of it before the model loads
+    inputs = getattr(args, "checked_inputs", None) or check_estimate(args)  # all of it before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot)
     try:
         joints = inputs.joints if inputs.joints is not None else validation.check_joints(args.joints, estimator.robot)

@@ -168,7 +168,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from monose3.apps.arguments import check_evaluate
     from monose3.data.datasets import open_dataset
 
-    checked = getattr(args, "_checked", None) or check_evaluate(args)
+    checked = getattr(args, "checked_inputs", None) or check_evaluate(args)
     estimator = load_estimator(args.checkpoint)
     k, m = args.steps if args.steps else (None, None)
     results = []

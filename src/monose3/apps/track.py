@@ -229,7 +229,7 @@ def _frames_for(args: argparse.Namespace, robot: RobotModel) -> Iterable:
     if args.frames is not None:
         frames = load_frames(args.frames, robot)
         return frames[: args.limit] if args.limit is not None else frames
-    checked = getattr(args, "_checked", None)
+    checked = getattr(args, "checked_inputs", None)
     if checked is not None and checked.video_joints is not None:
         names, joints = checked.video_joints
     elif args.joints_csv:
@@ -288,7 +288,7 @@ def run_track(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
     from monose3.apps.arguments import check_track
 
-    checked = getattr(args, "_checked", None) or check_track(args)  # inputs checked before the model loads
+    checked = getattr(args, "checked_inputs", None) or check_track(args)  # inputs checked before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
     out = checked.out
     tiles: list[np.ndarray] = []

@@ -39,7 +39,7 @@ def run_train(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    checked = getattr(args, "_checked", None)
+    checked = getattr(args, "checked_inputs", None)
     frames = checked.frames if checked else (load_datasets(args.data, config.robot) if args.data else [])
     sources = Sources(frames, args.synthetic, args.synthetic_ratio if frames else 1.0, args.profile, args.backgrounds)
     result = train(

@@ -330,13 +330,20 @@ class RobotModel:
 
     # ---- kinematics -----------------------------------------------------------------------
 
+    def all_joint_values(self, joints: np.ndarray) -> dict[str, np.ndarray]:
+        """``{name: [B] values}`` of every movable joint, the URDF ``<mimic>`` ones derived from
+        the ``[B, n_joints]`` independent ones."""
+        joints = np.atleast_2d(np.asarray(joints, np.float64))
+        value = {n: joints[:, i] for i, n in enumerate(self.joint_names)}
+        for name, j in self._mimic.items():
+            value[name] = value[j.mimic] * j.multiplier + j.offset
+        return value
+
     def link_poses(self, joints: np.ndarray) -> np.ndarray:
         """Forward kinematics: ``[B, n_joints]`` vectors to ``[B, n_links, 4, 4]`` base-frame poses."""
         joints = np.atleast_2d(np.asarray(joints, np.float64))
         batch = joints.shape[0]
-        value = {n: joints[:, i] for i, n in enumerate(self.joint_names)}
-        for name, j in self._mimic.items():
-            value[name] = value[j.mimic] * j.multiplier + j.offset
+        value = self.all_joint_values(joints)
         poses = np.zeros((batch, len(self.links), 4, 4))
         poses[:, self.link_index[self.root]] = np.eye(4)
         for j in self._order:

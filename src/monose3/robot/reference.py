@@ -122,11 +122,8 @@ class Renderer:
         return pose
 
     def set_joints(self, joints: np.ndarray) -> None:
-        values = dict(zip(self.model.joint_names, joints, strict=True))
-        for name, j in self.model._mimic.items():
-            values[name] = values[j.mimic] * j.multiplier + j.offset
-        for name, value in values.items():
-            pb.resetJointState(self.body, self._joint_ids[name], float(value), physicsClientId=self.client)
+        for name, value in self.model.all_joint_values(joints).items():
+            pb.resetJointState(self.body, self._joint_ids[name], float(value[0]), physicsClientId=self.client)
 
     def link_world_poses(self) -> dict[str, np.ndarray]:
         """pybullet's own link frames, expressed relative to the root link (used by tests)."""
