@@ -10,6 +10,10 @@ import torch
 from monose3.geometry.camera import crop_boxes, crop_images, crop_intrinsics, project
 from monose3.geometry.poses import transform_points
 
+# Points nearer than this (metres) are projected as if this far, so a pose that puts part of the
+# robot behind the lens still gives a finite crop box.
+NEAR_CLIP = 0.05
+
 
 def crop_geometry(
     pose_ref: torch.Tensor, points_ref: torch.Tensor, K: torch.Tensor, render_size: tuple[int, int]
@@ -20,9 +24,9 @@ def crop_geometry(
     frame, so the crop is centred on the reference point's projection (RoboPose's rule).
     """
     cam_points = transform_points(pose_ref, points_ref)
-    cam_points = torch.cat([cam_points[..., :2], cam_points[..., 2:].clamp_min(0.05)], -1)
+    cam_points = torch.cat([cam_points[..., :2], cam_points[..., 2:].clamp_min(NEAR_CLIP)], -1)
     center = pose_ref[:, None, :3, 3].clone()
-    center[..., 2] = center[..., 2].clamp_min(0.05)
+    center[..., 2] = center[..., 2].clamp_min(NEAR_CLIP)
     uv = project(cam_points, K)
     uv_center = project(center, K)[:, 0]
     boxes = crop_boxes(uv, uv_center, render_size[0] / render_size[1])
