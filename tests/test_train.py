@@ -86,6 +86,7 @@ def test_overfits_a_fixed_batch(frames):
     assert sum(losses[-5:]) / 5 < losses[0] / 4, [round(v, 3) for v in losses[::5]]
 
 
+@pytest.mark.slow  # 10-20 s of CPU training; CI runs it
 def test_resume_reproduces_the_uninterrupted_run(frames, tmp_path):
     sources = Sources(frames, synthetic=True, synthetic_ratio=0.5)
     full = train(tiny_config(), tmp_path / "full", sources, progress=False)
@@ -101,6 +102,7 @@ def test_resume_reproduces_the_uninterrupted_run(frames, tmp_path):
     assert {r.split(",")[-1] for r in rows[1:]} == {"frames", "synthetic"}
 
 
+@pytest.mark.slow  # 10-20 s of CPU training; CI runs it
 def test_shards_round_trip_and_continue_a_run(frames, tmp_path):
     first = train(tiny_config(max_steps=2), tmp_path / "a", Sources(frames), progress=False)
     weights, meta = read_shards(tmp_path / "a")
@@ -153,6 +155,7 @@ def test_cli_refuses_to_overwrite_and_resumes(tiny_dream, tmp_path, capsys):
     assert read_checkpoint(tmp_path / "checkpoint.pt")["step"] == 3
 
 
+@pytest.mark.slow  # 10-20 s of CPU training; CI runs it
 def test_cli_trains_on_synthetic_scenes_for_a_time_budget(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["train", "--synthetic", "--out", str(out), "--batch-size", "2", "--minutes", "0.1"]) == 0

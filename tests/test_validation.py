@@ -143,8 +143,14 @@ def _joints_as(frame, layout: str):
     }[layout]
 
 
-@pytest.mark.parametrize("via", ["api", "cli"])
-@pytest.mark.parametrize("layout", JOINT_LAYOUTS)
+# Through the CLI each case loads the model again (6 s): one case stays fast, the rest are slow.
+VIA = ["api", "cli"]
+
+
+@pytest.mark.parametrize("via", VIA)
+@pytest.mark.parametrize(
+    "layout", [layout if layout == "dict" else pytest.param(layout, marks=pytest.mark.slow) for layout in JOINT_LAYOUTS]
+)
 def test_every_documented_joint_layout_is_accepted(base, estimator, layout, via, tmp_path):
     d, frame = base
     joints = _joints_as(frame, layout)
