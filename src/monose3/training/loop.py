@@ -8,7 +8,6 @@ every ``shard_minutes``, and can start from another run's shards (``init``).
 
 from __future__ import annotations
 
-import csv
 import os
 import time
 from collections.abc import Iterator
@@ -20,7 +19,6 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
-from tqdm import tqdm
 
 from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
@@ -31,6 +29,7 @@ from monose3.method.scheduler import make_noiser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import read_checkpoint, read_weights, save_checkpoint
+from monose3.training.logs import LogWindow, plot_training_logs
 from monose3.training.samples import (
     FrameDataset,
     GlobalSampleSampler,
@@ -43,7 +42,6 @@ from monose3.training.shards import write_shards
 from monose3.training.synthetic import SceneDataset, load_photos, synthesize_crops
 
 CHECKPOINT = "checkpoint.pt"
-LOG_FIELDS = ["step", "samples", "loss", "loss_xy", "loss_rot", "loss_z", "lr", "samples_per_s", "source"]
 
 
 @dataclass
@@ -84,34 +82,6 @@ def _distributed() -> tuple[int, int, int]:
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
     return int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world
-
-
-class _Log:
-    """CSV (always) and TensorBoard (rank 0) logs; on resume, rows after the checkpoint are dropped."""
-
-    def __init__(self, out: Path, start_step: int):
-        self.path = out / "log.csv"
-        rows = []
-        if self.path.is_file() and start_step > 0:
-            with open(self.path) as fh:
-                rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= start_step]
-        with open(self.path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, LOG_FIELDS, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(rows)
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(out / "tensorboard"), purge_step=start_step + 1 if start_step else None)
-
-    def write(self, row: dict) -> None:
-        with open(self.path, "a", newline="") as fh:
-            csv.DictWriter(fh, LOG_FIELDS, extrasaction="ignore").writerow(row)
-        for key, value in row.items():
-            if key not in ("step", "source"):
-                self.tb.add_scalar(f"train/{key}", value, row["step"])
-
-    def close(self) -> None:
-        self.tb.close()
 
 
 def train_step(
@@ -225,6 +195,57 @@ def _init_weights(model: Denoiser, init: str | Path, config: Config) -> tuple[in
     return step, int(state.get("samples", step * saved.train.batch_size))
 
 
+@dataclass
+class RunState:
+    """What a run carries from step to step (and through a checkpoint)."""
+
+    model: Denoiser
+    optimizer: torch.optim.Optimizer
+    step: int = 0
+    samples: int = 0
+    warm_from: int = 0  # the learning rate warms up again from this step (a fresh optimiser)
+
+
+def start_run(config: Config, out: Path, device: torch.device, resume: bool, init: str | Path | None) -> RunState:
+    """The model and optimiser: resumed from ``out``'s checkpoint, started from ``init``, or new."""
+    torch.manual_seed(config.train.seed)
+    model = Denoiser(config.network).to(device)
+    if device.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+    run = RunState(model, torch.optim.Adam(model.parameters(), lr=config.train.lr))
+    ckpt_path = out / CHECKPOINT
+    if resume and ckpt_path.is_file():
+        state = read_checkpoint(ckpt_path)
+        saved = Config.from_dict(state["config"])
+        if (saved.robot, saved.preset, saved.network) != (config.robot, config.preset, config.network):
+            raise Monose3Error(f"{ckpt_path} was trained with another robot/preset/network; use a new --out")
+        model.load_state_dict(state["model"])
+        run.optimizer.load_state_dict(state["optimizer"])
+        run.step, run.samples = int(state["step"]), int(state.get("samples", 0))
+        run.warm_from = int(state.get("warm_from", 0))
+    elif init is not None:
+        run.step, run.samples = _init_weights(model, init, config)
+        run.warm_from = run.step
+    return run
+
+
+def save_run(run: RunState, out: Path, config: Config, loss: dict[str, float], final: bool = False) -> None:
+    """Weight shards always; the exact-resume checkpoint every ``checkpoint_every`` steps and at the end."""
+    meta = {"config": config.to_dict(), "step": run.step, "samples": run.samples, "loss": loss}
+    write_shards(out, run.model.state_dict(), meta)
+    if final or run.step % config.train.checkpoint_every == 0:
+        state = {
+            "model": run.model.state_dict(),
+            "optimizer": run.optimizer.state_dict(),
+            "step": run.step,
+            "samples": run.samples,
+            "warm_from": run.warm_from,
+            "config": config.to_dict(),
+            "robot": config.robot,
+        }
+        save_checkpoint(out / CHECKPOINT, state)
+
+
 def train(
     config: Config,
     out_dir: str | Path,
@@ -240,131 +261,56 @@ def train(
     started = time.perf_counter()
     rank, local_rank, world = _distributed()
     device = torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
-    out = Path(out_dir)
-    tc = config.train
-    torch.manual_seed(tc.seed)
-    model = Denoiser(config.network).to(device)
-    if device.type == "cuda":
-        model = model.to(memory_format=torch.channels_last)
-    optimizer = torch.optim.Adam(model.parameters(), lr=tc.lr)
-    step = samples = warm_from = 0
-    ckpt_path = out / CHECKPOINT
-    if resume and ckpt_path.is_file():
-        state = read_checkpoint(ckpt_path)
-        saved = Config.from_dict(state["config"])
-        if (saved.robot, saved.preset, saved.network) != (config.robot, config.preset, config.network):
-            raise Monose3Error(f"{ckpt_path} was trained with another robot/preset/network; use a new --out")
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        step, samples, warm_from = int(state["step"]), int(state.get("samples", 0)), int(state.get("warm_from", 0))
-    elif init is not None:
-        step, samples = _init_weights(model, init, config)
-        warm_from = step  # a fresh optimiser warms up again
-    maker = BatchMaker(config, sources, device, step, rank, world)
+    out, tc = Path(out_dir), config.train
+    run = start_run(config, out, device, resume, init)
+    maker = BatchMaker(config, sources, device, run.step, rank, world)
     out.mkdir(parents=True, exist_ok=True)
-    ddp_model = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    net = torch.compile(ddp_model) if compile_model else ddp_model
-    log = _Log(out, step) if rank == 0 else None
+    net = torch.nn.parallel.DistributedDataParallel(run.model) if world > 1 else run.model
+    net = torch.compile(net) if compile_model else net
     amp = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if device.type == "cuda" else nullcontext
     # With a clock budget the number of steps is not known in advance: count them, no total.
-    total = None if minutes is not None else tc.max_steps
-    bar = tqdm(total=total, initial=step, desc="train", unit="step", disable=not progress or rank != 0)
-    losses: list[float] = []
-    tick, window, last_shard, stopped_by = time.perf_counter(), [], time.perf_counter(), "steps"
-    logged: dict[str, float] = {}
+    window = LogWindow(out, run.step, None if minutes is not None else tc.max_steps, progress, rank)
     budget = None if minutes is None else minutes * 60.0
-    step_time = 0.0
-
-    def write_row(source: str) -> None:
-        nonlocal tick, window, logged
-        rate = len(window) * tc.batch_size * world / (time.perf_counter() - tick)
-        row = {"step": step, "samples": samples, "lr": learning_rate(step - 1 - warm_from, config)}
-        row.update({"samples_per_s": rate, "source": source, **window_means(window)})
-        tick, window, logged = time.perf_counter(), [], window_means(window)
-        bar.set_postfix(loss=f"{row['loss']:.4f}", samples_s=f"{rate:.1f}")
-        log.write(row)
-
-    def save_all(final: bool = False) -> None:
-        meta = {"config": config.to_dict(), "step": step, "samples": samples, "loss": window_means(window) or logged}
-        write_shards(out, model.state_dict(), meta)
-        if final or step % tc.checkpoint_every == 0:
-            save_checkpoint(
-                ckpt_path,
-                {
-                    "model": model.state_dict(),
-                    "optimizer": optimizer.state_dict(),
-                    "step": step,
-                    "samples": samples,
-                    "warm_from": warm_from,
-                    "config": config.to_dict(),
-                    "robot": config.robot,
-                },
-            )
-
-    while step < tc.max_steps:
+    losses: list[float] = []
+    last_shard, stopped_by, step_time, source = time.perf_counter(), "steps", 0.0, ""
+    while run.step < tc.max_steps:
         if budget is not None and time.perf_counter() - started + 1.5 * step_time > budget:
             stopped_by = "minutes"
             break
         begin = time.perf_counter()
-        source, batch = maker.batch(step)
-        loss, parts = train_step(net, optimizer, batch, config, learning_rate(step - warm_from, config), amp)
-        step += 1
-        samples += tc.batch_size * world
+        source, batch = maker.batch(run.step)
+        lr = learning_rate(run.step - run.warm_from, config)
+        loss, parts = train_step(net, run.optimizer, batch, config, lr, amp)
+        run.step += 1
+        run.samples += tc.batch_size * world
         step_time = time.perf_counter() - begin
         losses.append(loss)
-        window.append((loss, parts))
-        bar.update(1)
-        if log is not None and (step % tc.log_every == 0 or step == tc.max_steps):
-            write_row(source)
-        if rank == 0 and (step % tc.checkpoint_every == 0 or time.perf_counter() - last_shard > shard_minutes * 60):
-            save_all()
+        window.add(loss, parts)
+        if window.log is not None and (run.step % tc.log_every == 0 or run.step == tc.max_steps):
+            _log_row(window, run, config, source, world)
+        if rank == 0 and (run.step % tc.checkpoint_every == 0 or time.perf_counter() - last_shard > shard_minutes * 60):
+            save_run(run, out, config, window.means())
             last_shard = time.perf_counter()
-    if log is not None and window:  # the steps since the last log row (a clock stop mid-window)
-        write_row(source)
-    bar.close()
+    _finish(run, out, config, window, losses, source, world, rank)
+    return TrainResult(losses, run.step, run.samples, stopped_by)
+
+
+def _log_row(window: LogWindow, run: RunState, config: Config, source: str, world: int) -> None:
+    lr = learning_rate(run.step - 1 - run.warm_from, config)
+    window.write_row(run.step, run.samples, lr, source, config.train.batch_size * world)
+
+
+def _finish(run, out: Path, config: Config, window: LogWindow, losses, source: str, world: int, rank: int) -> None:
+    """The last log row (a clock stop mid-window), the final weights, the loss plot."""
+    if window.log is not None and window.items:
+        _log_row(window, run, config, source, world)
+    window.bar.close()
     if rank == 0 and losses:
-        save_all(final=True)
-    if log is not None:
-        log.close()
-        plot_training_logs(log.path, out / "loss.png")
+        save_run(run, out, config, window.means(), final=True)
+    if window.log is not None:
+        window.log.close()
+        plot_training_logs(window.log.path, out / "loss.png")
     if world > 1:
         dist.barrier()
-    return TrainResult(losses, step, samples, stopped_by)
 
 
-def window_means(window: list[tuple[float, dict[str, float]]]) -> dict[str, float]:
-    """Mean loss and Eq. 10 parts over the logging window (single batches are too noisy to read)."""
-    if not window:
-        return {}
-    means = {f"loss_{k}": sum(p[k] for _, p in window) / len(window) for k in ("xy", "rot", "z")}
-    return {"loss": sum(v for v, _ in window) / len(window), **means}
-
-
-def _running_mean(values: list[float], width: int) -> list[float]:
-    return [
-        sum(values[max(0, i - width + 1) : i + 1]) / len(values[max(0, i - width + 1) : i + 1])
-        for i in range(len(values))
-    ]
-
-
-def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path | None:
-    """The loss of a run (``log.csv``) and its three parts of Eq. 10 against samples seen."""
-    from monose3.report.plots import plot_curves
-
-    with open(log_csv) as fh:
-        rows = list(csv.DictReader(fh))
-    if not rows:
-        return None
-    curves = {
-        name: _running_mean([float(r[col]) for r in rows], smooth)
-        for name, col in (("total", "loss"), ("v_xy", "loss_xy"), ("rotation", "loss_rot"), ("v_z", "loss_z"))
-    }
-    return plot_curves(
-        [int(r.get("samples") or 0) or int(r["step"]) for r in rows],
-        curves,
-        path,
-        xlabel="samples seen",
-        ylabel="loss (Eq. 10, m)",
-        title=f"training loss, running mean of {smooth} log points",
-        logy=True,
-    )
