@@ -75,19 +75,26 @@ def skew(v):
     return xp.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
 
 
+def axis_angle_to_matrix(axis, angle):
+    """Rodrigues: unit axes ``[..., 3]`` and angles ``[...]`` (radians) to R = I + sin(a) K + (1 - cos(a)) K^2
+    with K = skew(axis); an axis ``[3]`` with angles ``[B]`` gives ``[B, 3, 3]`` (a URDF joint)."""
+    xp = array_module(axis)
+    if xp is np:
+        axis, angle = np.asarray(axis, np.float64), np.asarray(angle, np.float64)
+    k = skew(axis)
+    s, c = xp.sin(angle)[..., None, None], xp.cos(angle)[..., None, None]
+    eye = xp.eye(3, dtype=k.dtype) if xp is np else xp.eye(3, dtype=k.dtype, device=k.device)
+    return eye + s * k + (1.0 - c) * (k @ k)
+
+
 def rotvec_to_matrix(rotvec):
-    """Rotation vectors ``[..., 3]`` (axis times angle) to matrices (Rodrigues), exact near 0."""
+    """Rotation vectors ``[..., 3]`` (axis times angle) to matrices (:func:`axis_angle_to_matrix`)."""
     xp = array_module(rotvec)
     if xp is np:
         rotvec = np.asarray(rotvec, np.float64)
-    theta = xp.linalg.norm(rotvec, axis=-1)[..., None, None]
-    k = skew(rotvec)
-    small = theta < 1e-8
-    safe = xp.where(small, xp.ones_like(theta), theta)
-    a = xp.where(small, 1.0 - theta**2 / 6.0, xp.sin(safe) / safe)
-    b = xp.where(small, 0.5 - theta**2 / 24.0, (1.0 - xp.cos(safe)) / safe**2)
-    eye = xp.eye(3, dtype=k.dtype) if xp is np else xp.eye(3, dtype=k.dtype, device=k.device)
-    return eye + a * k + b * (k @ k)
+    theta = xp.linalg.norm(rotvec, axis=-1)
+    axis = rotvec / xp.where(theta > 0, theta, xp.ones_like(theta))[..., None]  # zero vector: the identity
+    return axis_angle_to_matrix(axis, theta)
 
 
 def rotation_angle(rot_a, rot_b):

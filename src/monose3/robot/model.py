@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from monose3.errors import Monose3Error
-from monose3.geometry.rotations import rotvec_to_matrix
+from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.robot.meshes import (
     RobotMesh,
     Visual,
@@ -349,7 +349,7 @@ class RobotModel:
         for j in self._order:
             motion = np.broadcast_to(np.eye(4), (batch, 4, 4)).copy()
             if j.kind in ("revolute", "continuous"):
-                motion[:, :3, :3] = rotvec_to_matrix((j.axis / np.linalg.norm(j.axis)) * value[j.name][:, None])
+                motion[:, :3, :3] = axis_angle_to_matrix(j.axis / np.linalg.norm(j.axis), value[j.name])
             elif j.kind == "prismatic":
                 motion[:, :3, 3] = value[j.name][:, None] * j.axis
             poses[:, self.link_index[j.child]] = poses[:, self.link_index[j.parent]] @ j.origin @ motion

@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from monose3 import atomic
 from monose3.data.dream import DreamDataset
 from monose3.data.dream_writer import write_camera_settings, write_frame
 from monose3.data.scenes.appearance import BackgroundSource, compose_frame, list_backgrounds
@@ -214,15 +215,7 @@ def generate_dataset(
     out = Path(out)
     spec = get_spec(robot)
     prof = get_profile(profile)
-    if int(num) < 1:
-        raise Monose3Error(f"--num must be at least 1, got {num}")
-    w, h = (int(v) for v in size)
-    if w < 64 or h < 64:
-        raise Monose3Error(f"image size {w}x{h} is too small; use at least 64x64 (e.g. 640x480)")
-    if workers is not None and workers < 0:
-        raise Monose3Error(f"--workers must be >= 0, got {workers}")
-    if out.exists() and not out.is_dir():
-        raise Monose3Error(f"--out {out} is a file; give a folder path")
+    w, h = _check_request(out, num, size, workers, backend)
     bg_files = list_backgrounds(backgrounds)
     settings = {
         "num": int(num),
@@ -234,6 +227,39 @@ def generate_dataset(
         "renderer": backend,
     }
     done = _existing_frames(out)
+    _check_resume(out, settings, done, resume)
+    out.mkdir(parents=True, exist_ok=True)
+    nominal_f = (w / 2.0) / math.tan(math.radians(NOMINAL_HFOV_DEG) / 2.0)
+    write_camera_settings(out, intrinsics_matrix(nominal_f, nominal_f, (w - 1) / 2, (h - 1) / 2), w, h)
+    atomic.write_text(out / GENERATION_FILE, json.dumps(settings, indent=1))
+    todo = [i for i in range(int(num)) if i not in done]
+    job = _Job(str(out), int(seed), (w, h), prof, spec, tuple(str(p) for p in bg_files), backend)
+    _make_frames(job, todo, (os.cpu_count() or 1) if workers is None else int(workers), progress)
+    return out
+
+
+def _check_request(out: Path, num: int, size: tuple[int, int], workers: int | None, backend: str) -> tuple[int, int]:
+    """Refuse what cannot be generated before any work; returns the image size."""
+    if int(num) < 1:
+        raise Monose3Error(f"--num must be at least 1, got {num}")
+    w, h = (int(v) for v in size)
+    if w < 64 or h < 64:
+        raise Monose3Error(f"image size {w}x{h} is too small; use at least 64x64 (e.g. 640x480)")
+    if workers is not None and workers < 0:
+        raise Monose3Error(f"--workers must be >= 0, got {workers}")
+    if out.exists() and not out.is_dir():
+        raise Monose3Error(f"--out {out} is a file; give a folder path")
+    if backend not in RENDERERS:
+        raise Monose3Error(f"unknown renderer {backend!r}; choose one of {', '.join(RENDERERS)}")
+    if backend != "torch":
+        from monose3.robot.reference import resolve_backend
+
+        resolve_backend(backend)  # a missing pybullet fails here, before any work
+    return w, h
+
+
+def _check_resume(out: Path, settings: dict, done: set[int], resume: bool) -> None:
+    """Frames already in ``out`` need ``resume``, and a resumed run the same settings."""
     if done and not resume:
         raise Monose3Error(
             f"{out} already holds {len(done)} frames; choose a new --out folder, delete it, "
@@ -247,26 +273,15 @@ def generate_dataset(
                 f"--resume: {out} was generated with different settings ({out / GENERATION_FILE}); "
                 "rerun with the same --seed/--robot/--profile/--size/--backgrounds or use a new folder"
             )
-    out.mkdir(parents=True, exist_ok=True)
-    nominal_f = (w / 2.0) / math.tan(math.radians(NOMINAL_HFOV_DEG) / 2.0)
-    write_camera_settings(out, intrinsics_matrix(nominal_f, nominal_f, (w - 1) / 2, (h - 1) / 2), w, h)
-    (out / GENERATION_FILE).write_text(json.dumps(settings, indent=1))
-    todo = [i for i in range(int(num)) if i not in done]
-    if backend not in RENDERERS:
-        raise Monose3Error(f"unknown renderer {backend!r}; choose one of {', '.join(RENDERERS)}")
-    if backend != "torch":
-        from monose3.robot.reference import resolve_backend
 
-        resolve_backend(backend)  # a missing pybullet fails here, before any work
-    job = _Job(str(out), int(seed), (w, h), prof, spec, tuple(str(p) for p in bg_files), backend)
-    workers = (os.cpu_count() or 1) if workers is None else int(workers)
-    workers = min(workers, len(todo))
+
+def _make_frames(job: _Job, todo: list[int], workers: int, progress: bool) -> None:
+    """Frames ``todo`` in this process (``workers`` 0) or in worker processes, with a progress bar."""
     from tqdm import tqdm
 
-    bar = tqdm(total=len(todo), desc=f"generate {out.name}", unit="frame", disable=not progress or not todo)
-    if not todo:
-        pass
-    elif workers == 0:
+    bar = tqdm(total=len(todo), desc=f"generate {Path(job.out).name}", unit="frame", disable=not progress or not todo)
+    workers = min(workers, len(todo))
+    if todo and workers == 0:
         maker = FrameMaker(job)
         try:
             for i in todo:
@@ -274,10 +289,9 @@ def generate_dataset(
                 bar.update()
         finally:
             maker.close()
-    else:
+    elif todo:
         _run_workers(job, todo, workers, bar)
     bar.close()
-    return out
 
 
 # ---- preview --------------------------------------------------------------------------------
