@@ -325,21 +325,12 @@ def run_track(args: argparse.Namespace) -> int:
                     tiles.append(overlay_tile(estimator, frame, image, result))
 
             policy = TrackingPolicy(args.max_step_mm, args.max_step_deg, args.reinit_every)
-            results = track_sequence(
-                estimator,
-                frames,
-                policy,
-                on_frame=on_frame,
-                skipped=skipped,
-            )
+            results = track_sequence(estimator, frames, policy, on_frame=on_frame, skipped=skipped)
     finally:
         estimator.close()
     written = [jsonl_path, csv_path]
     if tiles:
-        # Frames of a folder may differ in size; the animation needs one size.
-        h, w = tiles[0].shape[:2]
-        tiles = [t if t.shape[:2] == (h, w) else cv2.resize(t, (w, h), interpolation=cv2.INTER_AREA) for t in tiles]
-        written.append(save_animation(tiles, out / "track.gif", fps=args.fps))
+        written.append(_save_gif(tiles, out / "track.gif", args.fps))
     if skipped:
         written.append(write_text(out / "skipped.json", json.dumps({"skipped": skipped}, indent=1)))
     print(format_summary(results))
@@ -348,3 +339,10 @@ def run_track(args: argparse.Namespace) -> int:
         print(line)
     print("wrote " + ", ".join(str(p) for p in written))
     return 0
+
+
+def _save_gif(tiles: list[np.ndarray], path: Path, fps: float) -> Path:
+    """The overlays as one animation; frames of a folder may differ in size, the animation cannot."""
+    h, w = tiles[0].shape[:2]
+    tiles = [t if t.shape[:2] == (h, w) else cv2.resize(t, (w, h), interpolation=cv2.INTER_AREA) for t in tiles]
+    return save_animation(tiles, path, fps=fps)
