@@ -25,6 +25,7 @@ from monose3.apps.options import (
     CHECKPOINT_HELP,
     DEVICE_HELP,
     ROBOT_HELP,
+    add_model_arguments,
     check_non_negative,
     robot_model,
 )
@@ -34,6 +35,8 @@ from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM
 from monose3.training.formats import check_checkpoint
 
 # ---- estimate -----------------------------------------------------------------------------------
+
+CHAINS_HELP = "stochastic reverse chains whose spread is the uncertainty (1 = one chain, no confidence)"
 
 
 def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
@@ -49,18 +52,11 @@ def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
         help="intrinsics of this image: JSON {fx, fy, cx, cy, width, height}, DREAM camera settings or ROS "
         "CameraInfo YAML",
     )
-    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
-    p.add_argument("--robot", help=ROBOT_HELP)
+    add_model_arguments(p, 4, CHAINS_HELP)
     p.add_argument(
         "--out",
         default="monose3_out",
         help="folder for pose.json, pose.yaml and overlay.png (default: monose3_out; created if missing)",
-    )
-    p.add_argument(
-        "--chains",
-        type=int,
-        default=4,
-        help="stochastic reverse chains whose spread is the uncertainty (default 4; 1 = one chain, no confidence)",
     )
     p.add_argument(
         "--sampler",
@@ -106,12 +102,7 @@ def add_demo_arguments(p: argparse.ArgumentParser) -> None:
         help="folder for pose.json, pose.yaml and overlay.png (default: monose3_demo; created if missing)",
     )
     p.add_argument("--checkpoint", help=CHECKPOINT_HELP + "; it must be a Panda model")
-    p.add_argument(
-        "--chains",
-        type=int,
-        default=4,
-        help="stochastic reverse chains whose spread is the uncertainty (default 4; 1 = one chain, no confidence)",
-    )
+    p.add_argument("--chains", type=int, default=4, help=f"{CHAINS_HELP} (default 4)")
 
 
 def check_demo(args: argparse.Namespace) -> SimpleNamespace:
@@ -131,18 +122,11 @@ def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
         help="folder of NNNN.png|jpg + NNNN.joints.json + camera.json, or a DREAM folder (then the error vs ground "
         "truth is reported)",
     )
-    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
-    p.add_argument("--robot", help=ROBOT_HELP)
+    add_model_arguments(p, 1, "stochastic chains per frame; >1 also rejects frames whose chains disagree")
     p.add_argument(
         "--out",
         default="monose3_calibration",
         help="folder for calibration.json/.yaml and the overlay (default: monose3_calibration)",
-    )
-    p.add_argument(
-        "--chains",
-        type=int,
-        default=1,
-        help="stochastic chains per frame (default 1); >1 also rejects frames whose chains disagree",
     )
     p.add_argument("--batch-size", type=int, default=4, help="frames estimated together (default 4)")
     p.add_argument("--limit", type=int, help="use only the first N frames")

@@ -33,3 +33,10 @@ def parse_size(text: str) -> tuple[int, int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"size must look like 640x480, got {text!r}") from None
     return w, h
+
+
+def add_model_arguments(p: argparse.ArgumentParser, chains: int, chains_help: str) -> None:
+    """``--checkpoint``, ``--robot`` and ``--chains``, as every command that estimates takes them."""
+    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
+    p.add_argument("--robot", help=ROBOT_HELP)
+    p.add_argument("--chains", type=int, default=chains, help=f"{chains_help} (default {chains})")
