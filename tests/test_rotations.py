@@ -1,4 +1,4 @@
-"""Rigid-transform helpers (se3 and se3_np), checked against pybullet's rotation conventions and by round trips."""
+"""geometry.rotations, checked against pybullet's rotation conventions and by round trips."""
 
 from __future__ import annotations
 

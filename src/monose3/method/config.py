@@ -2,7 +2,7 @@
 
 ``paper`` follows the paper (ResNet34, 640x480 input, 320x240 render). ``cpu`` is the same
 code path sized to learn something useful in about an hour on a 2-core machine. Both use the
-paper's ``concat`` denoiser; ``NetworkConfig.design`` selects the others (network.DESIGNS).
+paper's ``concat`` denoiser; ``NetworkConfig.design`` selects the others (method.denoiser.DESIGNS).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ class NetworkConfig:
     input_size: tuple[int, int] = (640, 480)  # (w, h) every input image is brought to
     time_embedding_dim: int = 4  # C_emb
     # "concat": the paper's ResNet over concat(render, crop, C_emb) (Sec. III-C). The others
-    # (see network.DESIGNS) encode render and crop with one shared trunk and compare features.
+    # (see method.denoiser.DESIGNS) encode render and crop with one shared trunk and compare features.
     design: str = "concat"
 
 
