@@ -164,13 +164,16 @@ def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[
 def train_design(design: str, config: Config, train: Pool, held: Pool, args: argparse.Namespace) -> dict:
     """Train one design for ``args.samples`` samples, evaluating ``args.evals`` times; ablate at the end."""
     config = with_section(config, "network", design=design)
+    if args.lr is not None:
+        config = with_section(config, "train", lr=args.lr)
     torch.manual_seed(args.seed)
     model = Denoiser(config.network)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
     gen = torch.Generator().manual_seed(args.seed)  # the same batch order for every design
-    order = torch.cat(
-        [torch.randperm(len(train["t"]), generator=gen) for _ in range(args.samples // len(train["t"]) + 1)]
-    )
+    rows = torch.arange(len(train["t"]))
+    if args.train_t_max is not None:  # a recipe: train on small t only (visible rotation differences)
+        rows = rows[train["t"] <= args.train_t_max]
+    order = torch.cat([rows[torch.randperm(len(rows), generator=gen)] for _ in range(args.samples // len(rows) + 1)])
     steps, bs = args.samples // args.batch_size, args.batch_size
     eval_at = {round(steps * (i + 1) / args.evals) for i in range(args.evals)}
     t_held = held["t"].numpy()
@@ -202,8 +205,13 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         ablated = evaluate(model, held, config, name)
         ablations[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
     if args.save_model:
-        torch.save({"model": model.state_dict(), "config": config.to_dict()}, Path(args.out) / f"{design}.pt")
-    return {"design": design, "rot_weight": args.rot_weight, "curve": curve, "ablation_pct": ablations}
+        from monose3.checkpoint import save_checkpoint
+
+        state = {"model": model.state_dict(), "config": config.to_dict(), "step": steps, "samples": steps * bs}
+        save_checkpoint(Path(args.out) / f"{design}{'_' + args.tag if args.tag else ''}.pt", state)
+    recipe = {"lr": config.train.lr, "train_t_max": args.train_t_max, "pool": len(train["t"])}
+    name = design + (f" [{args.tag}]" if args.tag else "")
+    return {"design": name, "rot_weight": args.rot_weight, "recipe": recipe, "curve": curve, "ablation_pct": ablations}
 
 
 def judge_weights(path: str, config: Config, held: Pool) -> dict:
@@ -317,6 +325,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--evals", type=int, default=4, help="held-out evaluations along training")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--rot-weight", type=float, default=1.0, help="weight of Eq. 10's rotation part in training")
+    p.add_argument("--lr", type=float, help="Adam learning rate after warm-up [the preset's, 3e-4]")
+    p.add_argument("--train-t-max", type=int, help="train on samples with t <= this only")
+    p.add_argument("--tag", default="", help="recipe name, added to the design's name and its result file")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--save-model", action="store_true", help="also save OUT/<design>.pt")
@@ -342,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     for design in args.designs:
         result = train_design(design, config, train, held, args)
-        suffix = "" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}"
+        suffix = ("" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}") + (f"_{args.tag}" if args.tag else "")
         (out / f"result_{design}{suffix}.json").write_text(json.dumps(result, indent=1))
     for i, path in enumerate(args.weights):
         result = judge_weights(path, config, held)

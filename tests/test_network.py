@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from monose3.config import Config, NetworkConfig, get_preset
+from monose3.config import Config, NetworkConfig, get_preset, with_section
 from monose3.network import (
     DESIGNS,
     POSE_FEATURES,
@@ -122,3 +122,33 @@ def test_configs_saved_before_the_design_field_load_as_concat():
 def test_unknown_design_is_refused():
     with pytest.raises(ValueError, match="design"):
         Denoiser(NetworkConfig(backbone="resnet18", design="nope"))
+
+
+@pytest.mark.parametrize("design", ["concat-grid", "siamese-grid"])
+def test_grid_designs_give_nine_outputs_at_any_render_size(design):
+    for size in ((64, 48), (128, 96), (320, 240)):
+        net = Denoiser(NetworkConfig(backbone="resnet18", render_size=size, design=design)).eval()
+        w, h = size
+        render, crop = torch.rand(2, 3, h, w), torch.rand(2, 3, h, w)
+        pose = pose_features(_poses(2, 3), _crop_K(2), size, 1.5) if net.needs_pose else None
+        assert net(render, crop, torch.tensor([3, 70]), pose).shape == (2, 9)
+
+
+@pytest.mark.parametrize("design", DESIGNS)
+def test_every_design_round_trips_through_a_checkpoint(design, tmp_path):
+    from monose3.checkpoint import load_model, save_checkpoint
+
+    config = with_section(get_preset("cpu"), "network", render_size=(64, 48), design=design)
+    torch.manual_seed(1)
+    net = Denoiser(config.network)
+    with torch.no_grad():  # non-zero weights everywhere, so the comparison below means something
+        for p in net.parameters():
+            p.add_(torch.randn_like(p) * 0.01)
+    net.eval()
+    render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
+    pose = pose_features(_poses(2, 3), _crop_K(2), (64, 48), 1.5) if net.needs_pose else None
+    save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
+    loaded, loaded_config = load_model(tmp_path / "m.pt")
+    assert loaded_config.network.design == design and loaded.needs_pose == net.needs_pose
+    with torch.no_grad():
+        assert torch.allclose(loaded(render, crop, t, pose), net(render, crop, t, pose), atol=1e-6)

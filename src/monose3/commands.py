@@ -344,7 +344,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gamma", type=float, help="translation noise divisor of VisDiff (default 3)")
     p.add_argument(
         "--design",
-        choices=["concat", "siamese", "siamese-corr", "siamese-pose"],
+        choices=["concat", "siamese", "siamese-corr", "siamese-pose", "concat-grid", "siamese-grid"],
         help="denoiser architecture (default: the preset's, concat = the paper's; see benchmarks/denoiser_designs.py)",
     )
     p.add_argument("--rot-weight", type=float, help="weight of Eq. 10's rotation part in the loss [1]")
