@@ -163,7 +163,7 @@ def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[
 
 def train_design(design: str, config: Config, train: Pool, held: Pool, args: argparse.Namespace) -> dict:
     """Train one design for ``args.samples`` samples, evaluating ``args.evals`` times; ablate at the end."""
-    config = with_section(config, "network", design=design)
+    config = with_section(config, "network", design=design, rotation_output=args.rotation_output)
     if args.lr is not None:
         config = with_section(config, "train", lr=args.lr)
     torch.manual_seed(args.seed)
@@ -184,7 +184,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, config)
         parts = parts_of(model_raw(model, batch), batch, config)
-        loss = parts["xy"].mean() + args.rot_weight * parts["rot"].mean() + parts["z"].mean()
+        loss = args.xyz_weight * (parts["xy"].mean() + parts["z"].mean()) + args.rot_weight * parts["rot"].mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
@@ -209,7 +209,13 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
 
         state = {"model": model.state_dict(), "config": config.to_dict(), "step": steps, "samples": steps * bs}
         save_checkpoint(Path(args.out) / f"{design}{'_' + args.tag if args.tag else ''}.pt", state)
-    recipe = {"lr": config.train.lr, "train_t_max": args.train_t_max, "pool": len(train["t"])}
+    recipe = {
+        "rotation_output": args.rotation_output,
+        "lr": config.train.lr,
+        "train_t_max": args.train_t_max,
+        "xyz_weight": args.xyz_weight,
+    }
+    recipe["pool"] = len(train["t"])
     name = design + (f" [{args.tag}]" if args.tag else "")
     return {"design": name, "rot_weight": args.rot_weight, "recipe": recipe, "curve": curve, "ablation_pct": ablations}
 
@@ -325,6 +331,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--evals", type=int, default=4, help="held-out evaluations along training")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--rot-weight", type=float, default=1.0, help="weight of Eq. 10's rotation part in training")
+    p.add_argument(
+        "--rotation-output", default="6d", choices=["6d", "so3", "abs6d"], help="NetworkConfig.rotation_output"
+    )
+    p.add_argument("--xyz-weight", type=float, default=1.0, help="weight of the xy and z parts (0: rotation only)")
     p.add_argument("--lr", type=float, help="Adam learning rate after warm-up [the preset's, 3e-4]")
     p.add_argument("--train-t-max", type=int, help="train on samples with t <= this only")
     p.add_argument("--tag", default="", help="recipe name, added to the design's name and its result file")

@@ -152,3 +152,43 @@ def test_every_design_round_trips_through_a_checkpoint(design, tmp_path):
     assert loaded_config.network.design == design and loaded.needs_pose == net.needs_pose
     with torch.no_grad():
         assert torch.allclose(loaded(render, crop, t, pose), net(render, crop, t, pose), atol=1e-6)
+
+
+@pytest.mark.parametrize("rotation_output", ["so3", "abs6d"])
+def test_rotation_outputs_start_as_identity_and_round_trip(rotation_output, tmp_path):
+    from monose3.checkpoint import load_model, save_checkpoint
+
+    config = with_section(
+        get_preset("cpu"), "network", render_size=(64, 48), design="siamese-grid", rotation_output=rotation_output
+    )
+    net = Denoiser(config.network).eval()
+    assert net.needs_pose == (rotation_output == "abs6d")
+    render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
+    pose = pose_features(_poses(2, 3), _crop_K(2), (64, 48), 1.5)
+    with torch.no_grad():
+        assert torch.allclose(net(render, crop, t, pose), torch.zeros(2, 9), atol=1e-6)
+        for p in net.parameters():
+            p.add_(torch.randn_like(p) * 0.01)
+    save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
+    loaded, saved = load_model(tmp_path / "m.pt")
+    assert saved.network.rotation_output == rotation_output
+    with torch.no_grad():
+        assert torch.allclose(loaded(render, crop, t, pose), net(render, crop, t, pose), atol=1e-6)
+
+
+def test_so3_and_abs6d_outputs_map_exactly_onto_the_rotation_they_mean():
+    from monose3.network import abs6d_raw, so3_raw
+    from monose3.se3 import rotation_to_6d
+
+    w = torch.tensor([[0.0, 0.0, 0.3], [0.2, -0.1, 0.05]])
+    raw = torch.zeros(2, 9)
+    raw[:, 2:5] = w
+    _, d_rot, _ = raw_to_update(so3_raw(raw), 64)
+    assert torch.allclose(d_rot[0], euler_xyz_to_matrix(torch.tensor([[0.0, 0.0, 0.3]]))[0], atol=1e-6)
+    assert torch.allclose(d_rot @ d_rot.transpose(1, 2), torch.eye(3).expand(2, 3, 3), atol=1e-6)
+    rot_t, rot_0 = _poses(2, 8)[:, :3, :3], _poses(2, 9)[:, :3, :3]
+    raw = torch.zeros(2, 9)
+    raw[:, 2:8] = rotation_to_6d(rot_0) - rotation_to_6d(rot_t)
+    pose = torch.cat([rotation_to_6d(rot_t), torch.zeros(2, 4)], dim=1)
+    _, d_rot, _ = raw_to_update(abs6d_raw(raw, pose), 64)
+    assert torch.allclose(d_rot @ rot_t, rot_0, atol=1e-5)

@@ -347,6 +347,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         choices=["concat", "siamese", "siamese-corr", "siamese-pose", "concat-grid", "siamese-grid"],
         help="denoiser architecture (default: the preset's, concat = the paper's; see benchmarks/denoiser_designs.py)",
     )
+    p.add_argument(
+        "--rotation-output",
+        choices=["6d", "so3", "abs6d"],
+        help="how the denoiser's rotation outputs are read (default 6d, the paper's; see docs/DESIGNS.md)",
+    )
     p.add_argument("--rot-weight", type=float, help="weight of Eq. 10's rotation part in the loss [1]")
     p.add_argument("--seed", type=int, help="seed of every random draw of the run [0]")
     p.add_argument("--resume", action="store_true", help="continue exactly from OUT/checkpoint.pt")
@@ -395,7 +400,6 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     from monose3.train import load_frames
 
     return SimpleNamespace(frames=load_frames(args.data, args.robot) if args.data else [])
-
 
 
 # ---- evaluate -----------------------------------------------------------------------------------

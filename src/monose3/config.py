@@ -40,6 +40,11 @@ class NetworkConfig:
     # "concat": the paper's ResNet over concat(render, crop, C_emb) (Sec. III-C). The others
     # (see network.DESIGNS) encode render and crop with one shared trunk and compare features.
     design: str = "concat"
+    # "6d": the rotation outputs are an offset from the identity's 6D vector (the paper's
+    # 6D rotation, Gram-Schmidt). "so3": a rotation vector (radians) mapped to the same 6D
+    # layout inside the network, so no output direction leaves dR unchanged (network.so3_raw).
+    # "abs6d": an offset of the absolute 6D rotation, R_0 = GS(6D(R_t) + raw) (network.abs6d_raw).
+    rotation_output: str = "6d"
 
 
 @dataclass(frozen=True)
