@@ -22,6 +22,13 @@ put together afterwards with ``--report``::
         --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat siamese --samples 8000
     python benchmarks/denoiser_designs.py --out /tmp/d11/results --report
 
+Recipes: ``--rotation-output`` (``NetworkConfig.rotation_output``), ``--rot-weight``,
+``--xyz-weight 0`` (the rotation part alone), ``--train-t-max`` (train on small t only),
+``--lr``, named with ``--tag``. ``--sanity clean`` / ``--sanity rotation`` build pools of
+clean synthetic scenes, the second with H_0 given H_t's translation, so render and crop
+differ by a rotation alone: the sanity task of whether rotation is learnable at all
+(docs/DESIGNS.md).
+
 Models trained elsewhere (e.g. ``monose3 train --synthetic --design D`` on a lent GPU) are
 judged the same way with ``--weights RUN...`` (run folders or checkpoints), on a held-out
 pool of the same preset (``--preset``; ``--held-data synthetic`` draws it on the fly).
@@ -52,17 +59,74 @@ Pool = dict[str, torch.Tensor]
 # ---- sample pools ---------------------------------------------------------------------------
 
 
-def build_pool(data_dir: str, config: Config, num: int, seed: int) -> dict[str, np.ndarray]:
+SANITY = ("none", "clean", "rotation")
+
+
+def clean_profile():
+    """Sanity scenes: the robot 0.9-1.6 m away, centred and fully in view; no distractors,
+    occluders, photographs, blur, noise, colour jitter or JPEG loss."""
+    from monose3.generate import SceneProfile
+
+    return SceneProfile(
+        name="clean",
+        distance=(0.9, 1.6),
+        offcenter=0.2,
+        min_visible=0.98,
+        distractors=(0, 0),
+        occluder_prob=0.0,
+        low_contrast_prob=0.0,
+        user_background_prob=0.0,
+        blur_prob=0.0,
+        noise_std=(0.0, 0.0),
+        color_jitter=0.0,
+        jpeg_quality=(98, 98),
+    )
+
+
+def _rotation_only_batch(maker, config: Config, seed: int, step: int) -> dict[str, torch.Tensor]:
+    """A clean synthetic batch whose H_0 has H_t's translation: render and crop differ by the
+    rotation about the centroid alone (the sanity task: is rotation learnable at all?)."""
+    from monose3.diffusion import base_frame
+    from monose3.training.samples import denoising_batch, noisy_views, step_generator
+    from monose3.training.synthetic import synthesize_crops
+
+    net = config.network
+    scenes = dict(next(maker._scenes))
+    joints = scenes["joints"].numpy()
+    views = noisy_views(
+        maker.robot, maker.noiser, config, scenes["pose"], joints, scenes["K"], step_generator(seed, step)
+    )
+    views.pose_ref_0 = views.pose_ref_0.clone()
+    views.pose_ref_0[:, :3, 3] = views.pose_ref_t[:, :3, 3]
+    scenes["pose"] = base_frame(views.pose_ref_0, views.centroid).to(scenes["pose"].dtype)
+    crops = synthesize_crops(
+        maker.renderer, scenes, views, net.render_size, net.input_size, maker.profile, maker.photos,
+        step_generator(seed, step), torch.device("cpu"),
+    )  # fmt: skip
+    return denoising_batch(views, crops, joints, maker.renderer)
+
+
+def build_pool(data_dir: str, config: Config, num: int, seed: int, sanity: str = "none") -> dict[str, np.ndarray]:
     """``num`` training samples (steps 0.. of a run with this seed), images as uint8; ``data_dir``
-    is a DREAM folder or ``"synthetic"``."""
+    is a DREAM folder or ``"synthetic"``. ``sanity``: ``clean`` synthetic scenes
+    (:func:`clean_profile`), or ``rotation``: clean scenes with H_0's translation set to H_t's."""
     from monose3.train import load_frames
     from monose3.training.loop import BatchMaker, Sources
 
     config = with_section(config, "train", seed=seed, num_workers=0)
-    sources = Sources(synthetic=True) if data_dir == "synthetic" else Sources(load_frames([data_dir], config.robot))
+    if sanity != "none":
+        sources = Sources(synthetic=True, profile=clean_profile())
+    elif data_dir == "synthetic":
+        sources = Sources(synthetic=True)
+    else:
+        sources = Sources(load_frames([data_dir], config.robot))
     maker = BatchMaker(config, sources, torch.device("cpu"), 0, 0, 1)
     keep = np.random.default_rng(0).choice(2000, NUM_POINTS, replace=False)
-    batches = [maker.batch(step)[1] for step in range(-(-num // config.train.batch_size))]
+    steps = range(-(-num // config.train.batch_size))
+    if sanity == "rotation":
+        batches = [_rotation_only_batch(maker, config, seed, step) for step in steps]
+    else:
+        batches = [maker.batch(step)[1] for step in steps]
     pool = {k: torch.cat([b[k] for b in batches])[:num].numpy() for k in batches[0]}
     for key in ("render", "crop"):
         pool[key] = np.round(pool[key] * 255).astype(np.uint8)
@@ -70,7 +134,7 @@ def build_pool(data_dir: str, config: Config, num: int, seed: int) -> dict[str, 
     return pool
 
 
-def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: int) -> Pool:
+def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: int, sanity: str = "none") -> Pool:
     """The cached pool at ``path``, built from ``data_dir`` first when missing or too small."""
     if path.is_file():
         cached = dict(np.load(path))
@@ -79,7 +143,7 @@ def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: 
     if data_dir is None:
         raise Monose3Error(f"no sample pool at {path}; pass --train-data/--held-data to build it")
     tick = time.perf_counter()
-    pool = build_pool(data_dir, config, num, seed)
+    pool = build_pool(data_dir, config, num, seed, sanity)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **pool)
     print(f"built {num} samples from {data_dir} in {time.perf_counter() - tick:.0f} s -> {path}", flush=True)
@@ -324,6 +388,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pool-dir", default="/tmp/monose3_design_pools", help="where the pools are cached")
     p.add_argument("--pool-size", type=int, default=4000, help="training samples in the pool")
     p.add_argument("--held-size", type=int, default=480, help="held-out samples")
+    p.add_argument(
+        "--sanity",
+        default="none",
+        choices=SANITY,
+        help="pools of clean synthetic scenes (clean), also with H_0's translation = H_t's (rotation) [none]",
+    )
     p.add_argument("--designs", nargs="*", default=[], choices=DESIGNS)
     p.add_argument("--weights", nargs="*", default=[], help="trained run folders / checkpoints to judge instead")
     p.add_argument("--preset", default="cpu", help="preset of the pools and the models (render size) [cpu]")
@@ -351,8 +421,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     config = get_preset(args.preset)
     pools = Path(args.pool_dir) / args.preset
-    held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, seed=1)
-    train = load_pool(pools / "train.npz", args.train_data, config, args.pool_size, seed=0) if args.designs else None
+    if args.sanity != "none":
+        pools = pools / args.sanity
+        args.train_data = args.held_data = "synthetic"
+    held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, 1, args.sanity)
+    train = (
+        load_pool(pools / "train.npz", args.train_data, config, args.pool_size, 0, args.sanity)
+        if args.designs
+        else None
+    )
     out.mkdir(parents=True, exist_ok=True)
     identity = bucket_means(evaluate(None, held, config), held["t"].numpy())
     (out / "identity.json").write_text(json.dumps(identity, indent=1))

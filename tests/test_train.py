@@ -220,11 +220,14 @@ def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
     assert read_checkpoint(tmp_path / "checkpoint.pt")["step"] == 2
 
 
-@pytest.mark.parametrize("design", DESIGNS)
-def test_every_design_trains_and_estimates(frames, design):
+@pytest.mark.parametrize(
+    ("design", "rotation_output"),
+    [(d, "6d") for d in DESIGNS] + [("concat-grid", "so3"), ("siamese-grid", "abs6d")],
+)
+def test_every_design_trains_and_estimates(frames, design, rotation_output):
     from monose3.estimator import PoseEstimator
 
-    config = with_section(tiny_config(rot_weight=3.0), "network", design=design)
+    config = with_section(tiny_config(rot_weight=3.0), "network", design=design, rotation_output=rotation_output)
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
     model = Denoiser(config.network)
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
