@@ -1,6 +1,6 @@
 """Denoiser designs side by side (issue 11): which one learns to *compare* render and crop?
 
-Every candidate (``NetworkConfig.design``, see ``monose3.method.denoiser.DESIGNS``) trains on the
+Every candidate (``NetworkConfig.design``, see ``monose3.method.config.DESIGNS``) trains on the
 same fixed pool of training samples, in the same order, for the same number of samples, on
 one CPU thread, and is judged on a held-out pool made from other frames:
 
@@ -22,6 +22,13 @@ put together afterwards with ``--report``::
         --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat siamese --samples 8000
     python benchmarks/denoiser_designs.py --out /tmp/d11/results --report
 
+Recipes: ``--rotation-output`` (``NetworkConfig.rotation_output``), ``--rot-weight``,
+``--xyz-weight 0`` (the rotation part alone), ``--train-t-max`` (train on small t only),
+``--lr``, named with ``--tag``. ``--sanity clean`` / ``--sanity rotation`` build pools of
+clean synthetic scenes, the second with H_0 given H_t's translation, so render and crop
+differ by a rotation alone: the sanity task of whether rotation is learnable at all
+(docs/DESIGNS.md).
+
 Models trained elsewhere (e.g. ``monose3 train --synthetic --design D`` on a lent GPU) are
 judged the same way with ``--weights RUN...`` (run folders or checkpoints), on a held-out
 pool of the same preset (``--preset``; ``--held-data synthetic`` draws it on the fly).
@@ -39,8 +46,8 @@ import numpy as np
 import torch
 
 from monose3.errors import Monose3Error, run_reporting_errors
-from monose3.method.config import Config, get_preset, with_section
-from monose3.method.denoiser import DESIGNS, Denoiser, pose_features
+from monose3.method.config import DESIGNS, Config, get_preset, with_section
+from monose3.method.denoiser import Denoiser, pose_features
 from monose3.method.loss import disentangled_parts
 from monose3.training.loop import learning_rate
 
@@ -53,17 +60,74 @@ Pool = dict[str, torch.Tensor]
 # ---- sample pools ---------------------------------------------------------------------------
 
 
-def build_pool(data_dir: str, config: Config, num: int, seed: int) -> dict[str, np.ndarray]:
+SANITY = ("none", "clean", "rotation")
+
+
+def clean_profile():
+    """Sanity scenes: the robot 0.9-1.6 m away, centred and fully in view; no distractors,
+    occluders, photographs, blur, noise, colour jitter or JPEG loss."""
+    from monose3.data.scenes import SceneProfile
+
+    return SceneProfile(
+        name="clean",
+        distance=(0.9, 1.6),
+        offcenter=0.2,
+        min_visible=0.98,
+        distractors=(0, 0),
+        occluder_prob=0.0,
+        low_contrast_prob=0.0,
+        user_background_prob=0.0,
+        blur_prob=0.0,
+        noise_std=(0.0, 0.0),
+        color_jitter=0.0,
+        jpeg_quality=(98, 98),
+    )
+
+
+def _rotation_only_batch(maker, config: Config, seed: int, step: int) -> dict[str, torch.Tensor]:
+    """A clean synthetic batch whose H_0 has H_t's translation: render and crop differ by the
+    rotation about the centroid alone (the sanity task: is rotation learnable at all?)."""
+    from monose3.method.pose_space import base_frame
+    from monose3.training.samples import denoising_batch, noisy_views, step_generator
+    from monose3.training.synthetic import synthesize_crops
+
+    net = config.network
+    scenes = dict(maker.next_scenes())
+    joints = scenes["joints"].numpy()
+    views = noisy_views(
+        maker.robot, maker.noiser, config, scenes["pose"], joints, scenes["K"], step_generator(seed, step)
+    )
+    views.pose_ref_0 = views.pose_ref_0.clone()
+    views.pose_ref_0[:, :3, 3] = views.pose_ref_t[:, :3, 3]
+    scenes["pose"] = base_frame(views.pose_ref_0, views.centroid).to(scenes["pose"].dtype)
+    crops = synthesize_crops(
+        maker.renderer, scenes, views, net.render_size, net.input_size, maker.profile, maker.photos,
+        step_generator(seed, step), torch.device("cpu"),
+    )  # fmt: skip
+    return denoising_batch(views, crops, joints, maker.renderer)
+
+
+def build_pool(data_dir: str, config: Config, num: int, seed: int, sanity: str = "none") -> dict[str, np.ndarray]:
     """``num`` training samples (steps 0.. of a run with this seed), images as uint8; ``data_dir``
-    is a DREAM folder or ``"synthetic"``."""
+    is a DREAM folder or ``"synthetic"``. ``sanity``: ``clean`` synthetic scenes
+    (:func:`clean_profile`), or ``rotation``: clean scenes with H_0's translation set to H_t's."""
     from monose3.data.datasets import load_datasets
     from monose3.training.loop import BatchMaker, Sources
 
     config = with_section(config, "train", seed=seed, num_workers=0)
-    sources = Sources(synthetic=True) if data_dir == "synthetic" else Sources(load_datasets([data_dir], config.robot))
+    if sanity != "none":
+        sources = Sources(synthetic=True, profile=clean_profile())
+    elif data_dir == "synthetic":
+        sources = Sources(synthetic=True)
+    else:
+        sources = Sources(load_datasets([data_dir], config.robot))
     maker = BatchMaker(config, sources, torch.device("cpu"), 0, 0, 1)
     keep = np.random.default_rng(0).choice(2000, NUM_POINTS, replace=False)
-    batches = [maker.batch(step)[1] for step in range(-(-num // config.train.batch_size))]
+    steps = range(-(-num // config.train.batch_size))
+    if sanity == "rotation":
+        batches = [_rotation_only_batch(maker, config, seed, step) for step in steps]
+    else:
+        batches = [maker.batch(step)[1] for step in steps]
     pool = {k: torch.cat([b[k] for b in batches])[:num].numpy() for k in batches[0]}
     for key in ("render", "crop"):
         pool[key] = np.round(pool[key] * 255).astype(np.uint8)
@@ -71,7 +135,7 @@ def build_pool(data_dir: str, config: Config, num: int, seed: int) -> dict[str, 
     return pool
 
 
-def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: int) -> Pool:
+def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: int, sanity: str = "none") -> Pool:
     """The cached pool at ``path``, built from ``data_dir`` first when missing or too small."""
     if path.is_file():
         cached = dict(np.load(path))
@@ -80,7 +144,7 @@ def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: 
     if data_dir is None:
         raise Monose3Error(f"no sample pool at {path}; pass --train-data/--held-data to build it")
     tick = time.perf_counter()
-    pool = build_pool(data_dir, config, num, seed)
+    pool = build_pool(data_dir, config, num, seed, sanity)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **pool)
     print(f"built {num} samples from {data_dir} in {time.perf_counter() - tick:.0f} s -> {path}", flush=True)
@@ -164,14 +228,17 @@ def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[
 
 def train_design(design: str, config: Config, train: Pool, held: Pool, args: argparse.Namespace) -> dict:
     """Train one design for ``args.samples`` samples, evaluating ``args.evals`` times; ablate at the end."""
-    config = with_section(config, "network", design=design)
+    config = with_section(config, "network", design=design, rotation_output=args.rotation_output)
+    if args.lr is not None:
+        config = with_section(config, "train", lr=args.lr)
     torch.manual_seed(args.seed)
     model = Denoiser(config.network)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
     gen = torch.Generator().manual_seed(args.seed)  # the same batch order for every design
-    order = torch.cat(
-        [torch.randperm(len(train["t"]), generator=gen) for _ in range(args.samples // len(train["t"]) + 1)]
-    )
+    rows = torch.arange(len(train["t"]))
+    if args.train_t_max is not None:  # a recipe: train on small t only (visible rotation differences)
+        rows = rows[train["t"] <= args.train_t_max]
+    order = torch.cat([rows[torch.randperm(len(rows), generator=gen)] for _ in range(args.samples // len(rows) + 1)])
     steps, bs = args.samples // args.batch_size, args.batch_size
     eval_at = {round(steps * (i + 1) / args.evals) for i in range(args.evals)}
     t_held = held["t"].numpy()
@@ -182,7 +249,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, config)
         parts = parts_of(model_raw(model, batch), batch, config)
-        loss = parts["xy"].mean() + args.rot_weight * parts["rot"].mean() + parts["z"].mean()
+        loss = args.xyz_weight * (parts["xy"].mean() + parts["z"].mean()) + args.rot_weight * parts["rot"].mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
@@ -203,8 +270,19 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         ablated = evaluate(model, held, config, name)
         ablations[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
     if args.save_model:
-        torch.save({"model": model.state_dict(), "config": config.to_dict()}, Path(args.out) / f"{design}.pt")
-    return {"design": design, "rot_weight": args.rot_weight, "curve": curve, "ablation_pct": ablations}
+        from monose3.training.checkpoints import save_checkpoint
+
+        state = {"model": model.state_dict(), "config": config.to_dict(), "step": steps, "samples": steps * bs}
+        save_checkpoint(Path(args.out) / f"{design}{'_' + args.tag if args.tag else ''}.pt", state)
+    recipe = {
+        "rotation_output": args.rotation_output,
+        "lr": config.train.lr,
+        "train_t_max": args.train_t_max,
+        "xyz_weight": args.xyz_weight,
+    }
+    recipe["pool"] = len(train["t"])
+    name = design + (f" [{args.tag}]" if args.tag else "")
+    return {"design": name, "rot_weight": args.rot_weight, "recipe": recipe, "curve": curve, "ablation_pct": ablations}
 
 
 def judge_weights(path: str, config: Config, held: Pool) -> dict:
@@ -311,6 +389,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pool-dir", default="/tmp/monose3_design_pools", help="where the pools are cached")
     p.add_argument("--pool-size", type=int, default=4000, help="training samples in the pool")
     p.add_argument("--held-size", type=int, default=480, help="held-out samples")
+    p.add_argument(
+        "--sanity",
+        default="none",
+        choices=SANITY,
+        help="pools of clean synthetic scenes (clean), also with H_0's translation = H_t's (rotation) [none]",
+    )
     p.add_argument("--designs", nargs="*", default=[], choices=DESIGNS)
     p.add_argument("--weights", nargs="*", default=[], help="trained run folders / checkpoints to judge instead")
     p.add_argument("--preset", default="cpu", help="preset of the pools and the models (render size) [cpu]")
@@ -318,6 +402,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--evals", type=int, default=4, help="held-out evaluations along training")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--rot-weight", type=float, default=1.0, help="weight of Eq. 10's rotation part in training")
+    p.add_argument(
+        "--rotation-output", default="6d", choices=["6d", "so3", "abs6d"], help="NetworkConfig.rotation_output"
+    )
+    p.add_argument("--xyz-weight", type=float, default=1.0, help="weight of the xy and z parts (0: rotation only)")
+    p.add_argument("--lr", type=float, help="Adam learning rate after warm-up [the preset's, 3e-4]")
+    p.add_argument("--train-t-max", type=int, help="train on samples with t <= this only")
+    p.add_argument("--tag", default="", help="recipe name, added to the design's name and its result file")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--save-model", action="store_true", help="also save OUT/<design>.pt")
@@ -331,8 +422,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     config = get_preset(args.preset)
     pools = Path(args.pool_dir) / args.preset
-    held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, seed=1)
-    train = load_pool(pools / "train.npz", args.train_data, config, args.pool_size, seed=0) if args.designs else None
+    if args.sanity != "none":
+        pools = pools / args.sanity
+        args.train_data = args.held_data = "synthetic"
+    held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, 1, args.sanity)
+    train = (
+        load_pool(pools / "train.npz", args.train_data, config, args.pool_size, 0, args.sanity)
+        if args.designs
+        else None
+    )
     out.mkdir(parents=True, exist_ok=True)
     identity = bucket_means(evaluate(None, held, config), held["t"].numpy())
     (out / "identity.json").write_text(json.dumps(identity, indent=1))
@@ -343,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     for design in args.designs:
         result = train_design(design, config, train, held, args)
-        suffix = "" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}"
+        suffix = ("" if args.rot_weight == 1.0 else f"_rot{args.rot_weight:g}") + (f"_{args.tag}" if args.tag else "")
         (out / f"result_{design}{suffix}.json").write_text(json.dumps(result, indent=1))
     for i, path in enumerate(args.weights):
         result = judge_weights(path, config, held)

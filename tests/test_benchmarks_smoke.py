@@ -152,10 +152,11 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
     for name, n, seed in (("train", 16, 0), ("held", 8, 1)):
         np.savez(pools / "cpu" / f"{name}.npz", **{k: v.numpy() for k, v in _fake_design_pool(n, seed).items()})
     argv = ["--pool-dir", str(pools), "--pool-size", "16", "--held-size", "8", "--samples", "8", "--batch-size", "4"]
-    argv += ["--evals", "2", "--out", str(tmp_path / "out"), "--designs", "concat", "siamese-pose"]
+    argv += ["--evals", "2", "--out", str(tmp_path / "out"), "--designs", "concat", "siamese-pose", "concat-grid"]
+    argv += ["--rotation-output", "abs6d", "--train-t-max", "60"]
     assert bench.main(argv) == 0
     text = capsys.readouterr().out
-    assert "identity" in text and "siamese-pose" in text
+    assert "identity" in text and "siamese-pose" in text and "concat-grid" in text
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     for result in summary["results"]:
         assert [row["samples"] for row in result["curve"]] == [4, 8]

@@ -3,8 +3,8 @@ import torch
 
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_6d_to_matrix
-from monose3.method.config import Config, NetworkConfig, get_preset
-from monose3.method.denoiser import DESIGNS, POSE_FEATURES, Denoiser, pose_features, timestep_embedding
+from monose3.method.config import DESIGNS, Config, NetworkConfig, get_preset, with_section
+from monose3.method.denoiser import POSE_FEATURES, Denoiser, pose_features, timestep_embedding
 from monose3.method.loss import disentangled_loss
 from monose3.method.update import apply_update, raw_to_update, true_update, update_to_raw
 
@@ -114,3 +114,73 @@ def test_configs_saved_before_the_design_field_load_as_concat():
 def test_unknown_design_is_refused():
     with pytest.raises(ValueError, match="design"):
         Denoiser(NetworkConfig(backbone="resnet18", design="nope"))
+
+
+@pytest.mark.parametrize("design", ["concat-grid", "siamese-grid"])
+def test_grid_designs_give_nine_outputs_at_any_render_size(design):
+    for size in ((64, 48), (128, 96), (320, 240)):
+        net = Denoiser(NetworkConfig(backbone="resnet18", render_size=size, design=design)).eval()
+        w, h = size
+        render, crop = torch.rand(2, 3, h, w), torch.rand(2, 3, h, w)
+        pose = pose_features(_poses(2, 3), _crop_K(2), size, 1.5) if net.needs_pose else None
+        assert net(render, crop, torch.tensor([3, 70]), pose).shape == (2, 9)
+
+
+@pytest.mark.parametrize("design", DESIGNS)
+def test_every_design_round_trips_through_a_checkpoint(design, tmp_path):
+    from monose3.training.checkpoints import load_model, save_checkpoint
+
+    config = with_section(get_preset("cpu"), "network", render_size=(64, 48), design=design)
+    torch.manual_seed(1)
+    net = Denoiser(config.network)
+    with torch.no_grad():  # non-zero weights everywhere, so the comparison below means something
+        for p in net.parameters():
+            p.add_(torch.randn_like(p) * 0.01)
+    net.eval()
+    render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
+    pose = pose_features(_poses(2, 3), _crop_K(2), (64, 48), 1.5) if net.needs_pose else None
+    save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
+    loaded, loaded_config = load_model(tmp_path / "m.pt")
+    assert loaded_config.network.design == design and loaded.needs_pose == net.needs_pose
+    with torch.no_grad():
+        assert torch.allclose(loaded(render, crop, t, pose), net(render, crop, t, pose), atol=1e-6)
+
+
+@pytest.mark.parametrize("rotation_output", ["so3", "abs6d"])
+def test_rotation_outputs_start_as_identity_and_round_trip(rotation_output, tmp_path):
+    from monose3.training.checkpoints import load_model, save_checkpoint
+
+    config = with_section(
+        get_preset("cpu"), "network", render_size=(64, 48), design="siamese-grid", rotation_output=rotation_output
+    )
+    net = Denoiser(config.network).eval()
+    assert net.needs_pose == (rotation_output == "abs6d")
+    render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
+    pose = pose_features(_poses(2, 3), _crop_K(2), (64, 48), 1.5)
+    with torch.no_grad():
+        assert torch.allclose(net(render, crop, t, pose), torch.zeros(2, 9), atol=1e-6)
+        for p in net.parameters():
+            p.add_(torch.randn_like(p) * 0.01)
+    save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
+    loaded, saved = load_model(tmp_path / "m.pt")
+    assert saved.network.rotation_output == rotation_output
+    with torch.no_grad():
+        assert torch.allclose(loaded(render, crop, t, pose), net(render, crop, t, pose), atol=1e-6)
+
+
+def test_so3_and_abs6d_outputs_map_exactly_onto_the_rotation_they_mean():
+    from monose3.geometry.rotations import matrix_to_rotation_6d
+    from monose3.method.denoiser import abs6d_raw, so3_raw
+
+    w = torch.tensor([[0.0, 0.0, 0.3], [0.2, -0.1, 0.05]])
+    raw = torch.zeros(2, 9)
+    raw[:, 2:5] = w
+    _, d_rot, _ = raw_to_update(so3_raw(raw), 64)
+    assert torch.allclose(d_rot[0], euler_xyz_to_matrix(torch.tensor([[0.0, 0.0, 0.3]]))[0], atol=1e-6)
+    assert torch.allclose(d_rot @ d_rot.transpose(1, 2), torch.eye(3).expand(2, 3, 3), atol=1e-6)
+    rot_t, rot_0 = _poses(2, 8)[:, :3, :3], _poses(2, 9)[:, :3, :3]
+    raw = torch.zeros(2, 9)
+    raw[:, 2:8] = matrix_to_rotation_6d(rot_0) - matrix_to_rotation_6d(rot_t)
+    pose = torch.cat([matrix_to_rotation_6d(rot_t), torch.zeros(2, 4)], dim=1)
+    _, d_rot, _ = raw_to_update(abs6d_raw(raw, pose), 64)
+    assert torch.allclose(d_rot @ rot_t, rot_0, atol=1e-5)

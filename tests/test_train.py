@@ -17,8 +17,8 @@ from conftest import TINY_NET
 from monose3.apps.cli import main
 from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
-from monose3.method.config import get_preset, with_section
-from monose3.method.denoiser import DESIGNS, Denoiser
+from monose3.method.config import DESIGNS, get_preset, with_section
+from monose3.method.denoiser import Denoiser
 from monose3.training.checkpoints import read_checkpoint
 from monose3.training.loop import BatchMaker, Sources, learning_rate, train, train_step
 from monose3.training.samples import GlobalSampleSampler
@@ -232,11 +232,14 @@ def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
     assert read_checkpoint(tmp_path / "checkpoint.pt")["step"] == 2
 
 
-@pytest.mark.parametrize("design", DESIGNS)
-def test_every_design_trains_and_estimates(frames, design):
+@pytest.mark.parametrize(
+    ("design", "rotation_output"),
+    [(d, "6d") for d in DESIGNS] + [("concat-grid", "so3"), ("siamese-grid", "abs6d")],
+)
+def test_every_design_trains_and_estimates(frames, design, rotation_output):
     from monose3.method.estimator import PoseEstimator
 
-    config = with_section(tiny_config(rot_weight=3.0), "network", design=design)
+    config = with_section(tiny_config(rot_weight=3.0), "network", design=design, rotation_output=rotation_output)
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
     model = Denoiser(config.network)
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)

@@ -16,7 +16,7 @@ from monose3.apps.options import (
 )
 from monose3.data import validation as v
 from monose3.errors import Monose3Error
-from monose3.method.config import TRAIN_PRESET
+from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, TRAIN_PRESET
 from monose3.robot.jobs import RENDERERS
 from monose3.training.formats import check_checkpoint
 
@@ -93,8 +93,13 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gamma", type=float, help="translation noise divisor of VisDiff (default 3)")
     p.add_argument(
         "--design",
-        choices=["concat", "siamese", "siamese-corr", "siamese-pose"],
+        choices=list(DESIGNS),
         help="denoiser architecture (default: the preset's, concat = the paper's; see benchmarks/denoiser_designs.py)",
+    )
+    p.add_argument(
+        "--rotation-output",
+        choices=list(ROTATION_OUTPUTS),
+        help="how the denoiser's rotation outputs are read (default 6d, the paper's; see docs/DESIGNS.md)",
     )
     p.add_argument("--rot-weight", type=float, help="weight of Eq. 10's rotation part in the loss [1]")
     p.add_argument("--seed", type=int, help="seed of every random draw of the run [0]")

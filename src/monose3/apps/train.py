@@ -27,6 +27,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
     config = with_section(config, "train", **{k: v for k, v in train_over.items() if v is not None})
     if args.design:
         config = with_section(config, "network", design=args.design)
+    if getattr(args, "rotation_output", None):
+        config = with_section(config, "network", rotation_output=args.rotation_output)
     diff_over = {"noise": args.noise, "gamma": args.gamma}
     return with_section(config, "diffusion", **{k: v for k, v in diff_over.items() if v is not None})
 

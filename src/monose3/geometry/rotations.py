@@ -75,26 +75,35 @@ def skew(v):
     return xp.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
 
 
+def _rodrigues(k, a, b):
+    """R = I + a K + b K^2 (Rodrigues' formula) for cross-product matrices ``k`` ``[..., 3, 3]``."""
+    xp = array_module(k)
+    eye = xp.eye(3, dtype=k.dtype) if xp is np else xp.eye(3, dtype=k.dtype, device=k.device)
+    return eye + a * k + b * (k @ k)
+
+
 def axis_angle_to_matrix(axis, angle):
-    """Rodrigues: unit axes ``[..., 3]`` and angles ``[...]`` (radians) to R = I + sin(a) K + (1 - cos(a)) K^2
-    with K = skew(axis); an axis ``[3]`` with angles ``[B]`` gives ``[B, 3, 3]`` (a URDF joint)."""
+    """Unit axes ``[..., 3]`` and angles ``[...]`` (radians) to rotations (Rodrigues, a = sin,
+    b = 1 - cos); an axis ``[3]`` with angles ``[B]`` gives ``[B, 3, 3]`` (a URDF joint)."""
     xp = array_module(axis)
     if xp is np:
         axis, angle = np.asarray(axis, np.float64), np.asarray(angle, np.float64)
-    k = skew(axis)
     s, c = xp.sin(angle)[..., None, None], xp.cos(angle)[..., None, None]
-    eye = xp.eye(3, dtype=k.dtype) if xp is np else xp.eye(3, dtype=k.dtype, device=k.device)
-    return eye + s * k + (1.0 - c) * (k @ k)
+    return _rodrigues(skew(axis), s, 1.0 - c)
 
 
 def rotvec_to_matrix(rotvec):
-    """Rotation vectors ``[..., 3]`` (axis times angle) to matrices (:func:`axis_angle_to_matrix`)."""
+    """Rotation vectors ``[..., 3]`` (axis times angle) to matrices (Rodrigues with K = skew(rotvec),
+    a = sin(t)/t, b = (1 - cos(t))/t^2), exact and differentiable at and near zero (series below 1e-4 rad)."""
     xp = array_module(rotvec)
     if xp is np:
         rotvec = np.asarray(rotvec, np.float64)
-    theta = xp.linalg.norm(rotvec, axis=-1)
-    axis = rotvec / xp.where(theta > 0, theta, xp.ones_like(theta))[..., None]  # zero vector: the identity
-    return axis_angle_to_matrix(axis, theta)
+    theta2 = (rotvec * rotvec).sum(-1)[..., None, None]
+    theta = xp.sqrt(xp.clip(theta2, 1e-24, None))
+    small = theta < 1e-4
+    a = xp.where(small, 1.0 - theta2 / 6.0, xp.sin(theta) / theta)
+    b = xp.where(small, 0.5 - theta2 / 24.0, (1.0 - xp.cos(theta)) / xp.clip(theta2, 1e-24, None))
+    return _rodrigues(skew(rotvec), a, b)
 
 
 def rotation_angle(rot_a, rot_b):

@@ -2,7 +2,7 @@
 
 ``paper`` follows the paper (ResNet34, 640x480 input, 320x240 render). ``cpu`` is the same
 code path sized to learn something useful in about an hour on a 2-core machine. Both use the
-paper's ``concat`` denoiser; ``NetworkConfig.design`` selects the others (method.denoiser.DESIGNS).
+paper's ``concat`` denoiser; ``NetworkConfig.design`` selects the others (DESIGNS).
 """
 
 from __future__ import annotations
@@ -31,6 +31,12 @@ class DiffusionConfig:
     fixper_trans_std: float = 0.1
 
 
+# The denoiser architectures (method.denoiser): "concat" is the paper's; see docs/DESIGNS.md.
+DESIGNS = ("concat", "siamese", "siamese-corr", "siamese-pose", "concat-grid", "siamese-grid")
+# How the network's rotation outputs are read: "6d" is the paper's offset of the 6D rotation.
+ROTATION_OUTPUTS = ("6d", "so3", "abs6d")
+
+
 @dataclass(frozen=True)
 class NetworkConfig:
     backbone: str = "resnet34"
@@ -38,8 +44,13 @@ class NetworkConfig:
     input_size: tuple[int, int] = (640, 480)  # (w, h) every input image is brought to
     time_embedding_dim: int = 4  # C_emb
     # "concat": the paper's ResNet over concat(render, crop, C_emb) (Sec. III-C). The others
-    # (see method.denoiser.DESIGNS) encode render and crop with one shared trunk and compare features.
+    # (see DESIGNS) encode render and crop with one shared trunk and compare features.
     design: str = "concat"
+    # "6d": the rotation outputs are an offset from the identity's 6D vector (the paper's
+    # 6D rotation, Gram-Schmidt). "so3": a rotation vector (radians) mapped to the same 6D
+    # layout inside the network, so no output direction leaves dR unchanged (network.so3_raw).
+    # "abs6d": an offset of the absolute 6D rotation, R_0 = GS(6D(R_t) + raw) (network.abs6d_raw).
+    rotation_output: str = "6d"
 
 
 @dataclass(frozen=True)

@@ -9,8 +9,10 @@ import torch
 import torchvision
 from torch import nn
 
-from monose3.method.config import NetworkConfig
+from monose3.geometry.rotations import matrix_to_rotation_6d, rotation_6d_to_matrix, rotvec_to_matrix
+from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, NetworkConfig
 from monose3.method.pose_space import normalize_pose
+from monose3.method.update import IDENTITY_6D
 
 NUM_OUTPUTS = 9  # v_xy (2), dR 6D (6), v_z (1)
 
@@ -23,7 +25,8 @@ def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.cat([torch.sin(args), torch.cos(args)], dim=1)
 
 
-DESIGNS = ("concat", "siamese", "siamese-corr", "siamese-pose")
+POSE_DESIGNS = ("siamese-pose",)  # designs whose head reads pose_features of H_t
+_GRID = (3, 4)  # (h, w) cells the "-grid" designs pool the last feature map to (not one global mean)
 POSE_FEATURES = 10  # x_t of Eq. 4 in the crop (9) + log(f / w) of the crop intrinsics (1)
 _CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (stride 8)
 
@@ -55,8 +58,66 @@ def pose_features(
 def pose_input(
     config: NetworkConfig, pose_ref_t: torch.Tensor, K_crop: torch.Tensor, c_z: float
 ) -> torch.Tensor | None:
-    """What a design reads besides the images: :func:`pose_features` for ``siamese-pose``, else None."""
-    return pose_features(pose_ref_t, K_crop, config.render_size, c_z) if config.design == "siamese-pose" else None
+    """What a design reads besides the images: :func:`pose_features` for :data:`POSE_DESIGNS`, else None."""
+    return pose_features(pose_ref_t, K_crop, config.render_size, c_z) if needs_pose(config) else None
+
+
+def needs_pose(config: NetworkConfig) -> bool:
+    """Whether the denoiser reads :func:`pose_features` of H_t: the :data:`POSE_DESIGNS` feed
+    them to the head; ``rotation_output="abs6d"`` uses only H_t's rotation, in the output map."""
+    return config.design in POSE_DESIGNS or config.rotation_output == "abs6d"
+
+
+def so3_raw(raw: torch.Tensor) -> torch.Tensor:
+    """Raw outputs whose rotation part is read as a rotation vector (``raw[:, 2:5]``, radians)
+    instead of a 6D offset, returned in the 6D layout :func:`raw_to_update` reads (exact: the
+    6D of a rotation matrix is orthonormal already). Unlike the 6D offset, the rotation vector
+    has no directions that leave dR unchanged: in those (the 6D columns' lengths and their
+    mutual angle) the loss has zero gradient, and Adam turns the float noise there into
+    full-size steps (measured: raw std ~0.3 on the two 6D diagonal entries after 1000 steps)."""
+    rot = matrix_to_rotation_6d(rotvec_to_matrix(raw[:, 2:5])) - IDENTITY_6D.to(raw)
+    return torch.cat([raw[:, :2], rot, raw[:, 8:]], dim=1)
+
+
+def abs6d_raw(raw: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """Raw outputs whose rotation part is an offset of the *absolute* 6D rotation
+    (R_0 = GS(6D(R_t) + raw[:, 2:8]), R_t from ``pose[:, :6]`` of :func:`pose_features`),
+    returned in the camera-frame 6D layout of :func:`raw_to_update` (dR = R_0 R_t^T, exact).
+
+    The target offset 6D(R_0) - 6D(R_t) is the difference of two absolute orientations, one
+    seen in the crop and one in the render: linear in features that encode orientation.
+    The camera-frame dR of Eq. 9 is their bilinear combination (dR = R_0 R_t^T), which a
+    CNN head has to learn as a product. The head still sees no pose, only the images."""
+    r6 = pose[:, :6].to(raw.dtype)
+    rot_t = rotation_6d_to_matrix(r6)
+    d_rot = rotation_6d_to_matrix(r6 + raw[:, 2:8]) @ rot_t.transpose(1, 2)
+    return torch.cat([raw[:, :2], matrix_to_rotation_6d(d_rot) - IDENTITY_6D.to(raw), raw[:, 8:]], dim=1)
+
+
+def coord_channels(b: int, h: int, w: int, like: torch.Tensor) -> torch.Tensor:
+    """CoordConv channels ``[b, 2, h, w]``: x and y of each cell in [-1, 1] (where a feature is)."""
+    ys = torch.linspace(-1.0, 1.0, h, dtype=like.dtype, device=like.device)
+    xs = torch.linspace(-1.0, 1.0, w, dtype=like.dtype, device=like.device)
+    grid = torch.stack(torch.meshgrid(ys, xs, indexing="ij")[::-1])
+    return grid[None].expand(b, 2, h, w)
+
+
+class GridHead(nn.Module):
+    """Pools a feature map to a coarse :data:`_GRID` of cells (not one global mean), squeezes
+    the channels and flattens, so the head knows *where* each feature is. A rotation about
+    the robot moves image content in opposite directions on either side of it; a global
+    average pools that displacement field to ~0, a grid keeps it."""
+
+    def __init__(self, channels: int, extra: int, squeeze: int = 64):
+        super().__init__()
+        self.pool = nn.Sequential(
+            nn.AdaptiveAvgPool2d(_GRID), nn.Conv2d(channels, squeeze, 1), nn.ReLU(inplace=True), nn.Flatten()
+        )
+        self.head = _zero_head(squeeze * _GRID[0] * _GRID[1] + extra)
+
+    def forward(self, x: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
+        x = self.pool(x)
+        return self.head(x if extra is None else torch.cat([x, extra.to(x.dtype)], dim=1))
 
 
 def local_correlation(a: torch.Tensor, b: torch.Tensor, radius: int = _CORR_RADIUS) -> torch.Tensor:
@@ -86,19 +147,23 @@ class SiameseNet(nn.Module):
     With ``use_pose`` the head also gets :func:`pose_features` (x_t of Eq. 4/5 and the zoom).
     """
 
-    def __init__(self, config: NetworkConfig, correlate: bool = False, use_pose: bool = False):
+    def __init__(self, config: NetworkConfig, correlate: bool = False, use_pose: bool = False, grid: bool = False):
         super().__init__()
         net = _resnet(config.backbone)
-        self.emb_dim, self.correlate, self.use_pose = config.time_embedding_dim, correlate, use_pose
+        self.emb_dim, self.correlate, self.use_pose, self.grid = config.time_embedding_dim, correlate, use_pose, grid
         self.trunk = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
         width = net.layer3[0].conv1.in_channels
-        fuse_in = 3 * width + self.emb_dim + ((2 * _CORR_RADIUS + 1) ** 2 if correlate else 0)
+        fuse_in = 3 * width + self.emb_dim + ((2 * _CORR_RADIUS + 1) ** 2 if correlate else 0) + (2 if grid else 0)
         self.fuse = nn.Sequential(
             nn.Conv2d(fuse_in, width, 1, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True)
         )
-        self.body = nn.Sequential(net.layer3, net.layer4, nn.AdaptiveAvgPool2d(1), nn.Flatten())
-        head_in = net.fc.in_features + (self.emb_dim + POSE_FEATURES if use_pose else 0)
-        self.head = _zero_head(head_in)
+        extra = self.emb_dim + POSE_FEATURES if use_pose else 0
+        if grid:
+            self.body = nn.Sequential(net.layer3, net.layer4)
+            self.head = GridHead(net.fc.in_features, extra)
+        else:
+            self.body = nn.Sequential(net.layer3, net.layer4, nn.AdaptiveAvgPool2d(1), nn.Flatten())
+            self.head = _zero_head(net.fc.in_features + extra)
 
     def forward(
         self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None
@@ -110,12 +175,17 @@ class SiameseNet(nn.Module):
         parts = [f_r, f_c, f_r - f_c, emb[:, :, None, None].expand(b, -1, h, w)]
         if self.correlate:
             parts.append(local_correlation(f_r, f_c))
+        if self.grid:
+            parts.append(coord_channels(b, h, w, f_r))
         x = self.body(self.fuse(torch.cat(parts, dim=1)))
+        extra = None
         if self.use_pose:
             if pose is None:
-                raise ValueError("this denoiser design needs the pose features of H_t (network.pose_features)")
-            x = torch.cat([x, emb, pose.to(x.dtype)], dim=1)
-        return self.head(x)
+                raise ValueError("this denoiser design needs the pose features of H_t (method.denoiser.pose_features)")
+            extra = torch.cat([emb, pose.to(x.dtype)], dim=1)
+        if self.grid:
+            return self.head(x, extra)
+        return self.head(x if extra is None else torch.cat([x, extra], dim=1))
 
 
 class Denoiser(nn.Module):
@@ -131,7 +201,23 @@ class Denoiser(nn.Module):
         self.config = config
         if config.design not in DESIGNS:
             raise ValueError(f"unknown denoiser design {config.design!r}; choose one of {DESIGNS}")
-        if config.design == "concat":
+        if config.rotation_output not in ROTATION_OUTPUTS:
+            raise ValueError(f"unknown rotation output {config.rotation_output!r}; choose one of {ROTATION_OUTPUTS}")
+        if config.design == "concat-grid":
+            net = _resnet(config.backbone)
+            net.conv1 = nn.Conv2d(8 + config.time_embedding_dim, 64, kernel_size=7, stride=2, padding=3, bias=False)
+            self.net = nn.Sequential(
+                net.conv1,
+                net.bn1,
+                net.relu,
+                net.maxpool,
+                net.layer1,
+                net.layer2,
+                net.layer3,
+                net.layer4,
+                GridHead(net.fc.in_features, 0),
+            )
+        elif config.design == "concat":
             net = _resnet(config.backbone)
             net.conv1 = nn.Conv2d(6 + config.time_embedding_dim, 64, kernel_size=7, stride=2, padding=3, bias=False)
             net.fc = nn.Linear(net.fc.in_features, NUM_OUTPUTS)
@@ -141,13 +227,16 @@ class Denoiser(nn.Module):
             self.net: nn.Module = net
         else:
             self.net = SiameseNet(
-                config, correlate=config.design == "siamese-corr", use_pose=config.design == "siamese-pose"
+                config,
+                correlate=config.design == "siamese-corr",
+                use_pose=config.design in POSE_DESIGNS,
+                grid=config.design == "siamese-grid",
             )
 
     @property
     def needs_pose(self) -> bool:
         """Whether :meth:`forward` needs ``pose`` (:func:`pose_features` of H_t)."""
-        return self.config.design == "siamese-pose"
+        return needs_pose(self.config)
 
     def forward(
         self, render: torch.Tensor, crop: torch.Tensor, t: torch.Tensor, pose: torch.Tensor | None = None
@@ -155,8 +244,18 @@ class Denoiser(nn.Module):
         """``render``, ``crop``: ``[B, 3, h, w]`` in [0, 1]; ``t``: ``[B]`` steps; ``pose``:
         ``[B, 10]`` from :func:`pose_features` (only read by ``siamese-pose``). Returns ``[B, 9]``."""
         emb = timestep_embedding(t, self.config.time_embedding_dim).to(render.dtype)
-        if self.config.design != "concat":
-            return self.net(render, crop, emb, pose)
-        b, _, h, w = render.shape
-        x = torch.cat([_to_net_range(render), _to_net_range(crop), emb[:, :, None, None].expand(b, -1, h, w)], dim=1)
-        return self.net(x)
+        if self.config.design not in ("concat", "concat-grid"):
+            raw = self.net(render, crop, emb, pose)
+        else:
+            b, _, h, w = render.shape
+            x = [_to_net_range(render), _to_net_range(crop), emb[:, :, None, None].expand(b, -1, h, w)]
+            if self.config.design == "concat-grid":
+                x.append(coord_channels(b, h, w, render))
+            raw = self.net(torch.cat(x, dim=1))
+        if self.config.rotation_output == "so3":
+            return so3_raw(raw)
+        if self.config.rotation_output == "abs6d":
+            if pose is None:
+                raise ValueError("rotation_output='abs6d' needs the pose features of H_t (pose_features)")
+            return abs6d_raw(raw, pose)
+        return raw

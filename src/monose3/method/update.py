@@ -8,7 +8,7 @@ import torch
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import matrix_to_rotation_6d, rotation_6d_to_matrix
 
-_IDENTITY_6D = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+IDENTITY_6D = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
 
 
 def raw_to_update(raw: torch.Tensor, render_width: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -18,7 +18,7 @@ def raw_to_update(raw: torch.Tensor, render_width: int) -> tuple[torch.Tensor, t
     6D vector and v_z as a log-ratio, so a zero output is the identity update.
     """
     v_xy = raw[:, :2] * render_width
-    d_rot = rotation_6d_to_matrix(raw[:, 2:8] + _IDENTITY_6D.to(raw))
+    d_rot = rotation_6d_to_matrix(raw[:, 2:8] + IDENTITY_6D.to(raw))
     v_z = torch.exp(raw[:, 8].clamp(-3.0, 3.0))
     return v_xy, d_rot, v_z
 
@@ -26,7 +26,7 @@ def raw_to_update(raw: torch.Tensor, render_width: int) -> tuple[torch.Tensor, t
 def update_to_raw(v_xy: torch.Tensor, d_rot: torch.Tensor, v_z: torch.Tensor, render_width: int) -> torch.Tensor:
     """Inverse of :func:`raw_to_update` (for tests and analysis)."""
     return torch.cat(
-        [v_xy / render_width, matrix_to_rotation_6d(d_rot) - _IDENTITY_6D.to(v_xy), torch.log(v_z)[:, None]], 1
+        [v_xy / render_width, matrix_to_rotation_6d(d_rot) - IDENTITY_6D.to(v_xy), torch.log(v_z)[:, None]], 1
     )
 
 

@@ -141,6 +141,12 @@ class BatchMaker:
         scenes = SceneDataset(self.robot.spec, sources.profile, config.network.input_size, tc.seed)
         self._scenes: Iterator | None = iter(loader(scenes)) if sources.synthetic else None
 
+    def next_scenes(self) -> dict[str, torch.Tensor]:
+        """The next batch of synthetic scenes (joints, pose, K, lighting...), as :meth:`batch` draws them."""
+        if self._scenes is None:
+            raise Monose3Error("this batch maker has no synthetic source; make it with Sources(synthetic=True)")
+        return next(self._scenes)
+
     def source_of(self, step: int) -> str:
         if self._frames is None:
             return "synthetic"
