@@ -188,6 +188,8 @@ def kuka_shards(tmp_path_factory):
         (["--init", "KUKA"], "kuka/cpu model"),
         (["--backgrounds", "EMPTY"], "no images"),
         (["--out", "FILE"], "is a file"),
+        (["--t-max", "0"], "--t-max must be at least 1"),
+        (["--t-curriculum-steps", "-5"], "--t-curriculum-steps must be at least 0"),
     ],
 )
 def test_cli_bad_input_is_one_line_before_any_work(tmp_path, capsys, kuka_shards, extra, words):
@@ -249,3 +251,16 @@ def test_every_design_trains_and_estimates(frames, design, rotation_output):
     est = estimator.estimate([frame.load_image()], frame.K[None], frame.joints[None], ddim_steps=1, direct_steps=1)
     estimator.close()
     assert est.poses.shape == (1, 4, 4) and torch.isfinite(torch.from_numpy(est.poses)).all()
+
+
+def test_t_curriculum_caps_and_then_widens_the_drawn_timesteps(frames):
+    from monose3.training.samples import max_timestep
+
+    config = with_section(tiny_config(), "train", t_max=10, t_curriculum_steps=100)
+    assert [max_timestep(s, config) for s in (0, 50, 100, 1000)] == [10, 55, 100, 100]
+    assert max_timestep(7, tiny_config()) == 100  # no curriculum: the paper's U{1..T}
+    fixed = with_section(tiny_config(), "train", t_max=10)
+    assert max_timestep(10_000, fixed) == 10
+    maker = BatchMaker(fixed, Sources(frames), torch.device("cpu"), 0, 0, 1)
+    drawn = torch.cat([maker.batch(step)[1]["t"] for step in range(3)])
+    assert drawn.min() >= 1 and drawn.max() <= 10

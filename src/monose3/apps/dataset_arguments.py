@@ -102,6 +102,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         help="how the denoiser's rotation outputs are read (default 6d, the paper's; see docs/DESIGNS.md)",
     )
     p.add_argument("--rot-weight", type=float, help="weight of Eq. 10's rotation part in the loss [1]")
+    p.add_argument("--t-max", type=int, help="curriculum: draw t <= T_MAX (default: T, the paper's U{1..T})")
+    p.add_argument(
+        "--t-curriculum-steps", type=int, help="raise --t-max linearly to T over this many steps [0: keep it]"
+    )
     p.add_argument("--seed", type=int, help="seed of every random draw of the run [0]")
     p.add_argument("--resume", action="store_true", help="continue exactly from OUT/checkpoint.pt")
     p.add_argument("--compile", action="store_true", help="torch.compile the network (GPU)")
@@ -131,6 +135,10 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     get_preset(args.preset)
     get_spec(args.robot)
     get_profile(args.profile)
+    if args.t_max is not None:
+        steps = get_preset(args.preset).diffusion.num_steps
+        v.check_count(args.t_max, "--t-max", 1, f" (t runs from 1 to the preset's T = {steps})")
+    check_non_negative(args.t_curriculum_steps, "--t-curriculum-steps")
     for name in ("steps", "batch_size", "checkpoint_every", "threads"):
         value = getattr(args, name)
         if value is not None:

@@ -21,6 +21,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
         "checkpoint_every": args.checkpoint_every,
         "seed": args.seed,
         "rot_weight": args.rot_weight,
+        "t_max": args.t_max,
+        "t_curriculum_steps": args.t_curriculum_steps,
     }
     if args.minutes is not None and args.steps is None:
         train_over["max_steps"] = 10**12  # the clock decides

@@ -63,6 +63,12 @@ class TrainConfig:
     # Weight of Eq. 10's rotation part in the training loss (1: the paper's sum). At the identity
     # update its gradient on the network's outputs is about 6x smaller than xy's and z's.
     rot_weight: float = 1.0
+    # A curriculum over t (None: the paper's t ~ U{1..T} from the start): draw t <= t_max, and
+    # raise that cap linearly to T over t_curriculum_steps (0: keep it). Rotation differences
+    # are visible at small t; at t > 50 they are ~70 deg and swamp the learnable gradients
+    # (docs/DESIGNS.md).
+    t_max: int | None = None
+    t_curriculum_steps: int = 0
     checkpoint_every: int = 500
     log_every: int = 20
     num_workers: int = 4

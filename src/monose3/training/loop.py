@@ -35,6 +35,7 @@ from monose3.training.samples import (
     GlobalSampleSampler,
     denoising_batch,
     frames_batch,
+    max_timestep,
     noisy_views,
     step_generator,
 )
@@ -162,14 +163,18 @@ class BatchMaker:
         scenes = next(self._scenes) if self._scenes is not None else None
         seed = self.config.train.seed * 1000 + self.rank
         gen = step_generator(seed, step)
+        t_max = max_timestep(step, self.config)
         if source == "frames":
-            return source, frames_batch(frames, self.robot, self.renderer, self.noiser, self.config, gen, self.device)
-        return source, self.synthetic_batch(scenes, gen, step_generator(seed, step, self.device))
+            batch = frames_batch(frames, self.robot, self.renderer, self.noiser, self.config, gen, self.device, t_max)
+            return source, batch
+        return source, self.synthetic_batch(scenes, gen, step_generator(seed, step, self.device), t_max)
 
-    def synthetic_batch(self, scenes, gen: torch.Generator, device_gen: torch.Generator) -> dict[str, torch.Tensor]:
+    def synthetic_batch(
+        self, scenes, gen: torch.Generator, device_gen: torch.Generator, t_max: int | None = None
+    ) -> dict[str, torch.Tensor]:
         net = self.config.network
         joints = scenes["joints"].numpy()
-        views = noisy_views(self.robot, self.noiser, self.config, scenes["pose"], joints, scenes["K"], gen)
+        views = noisy_views(self.robot, self.noiser, self.config, scenes["pose"], joints, scenes["K"], gen, t_max)
         crops = synthesize_crops(
             self.renderer,
             scenes,

@@ -27,6 +27,16 @@ from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 
 
+def max_timestep(step: int, config: Config) -> int:
+    """The largest t a training step draws: ``TrainConfig.t_max`` raised linearly to T over
+    ``t_curriculum_steps`` (T throughout without a curriculum, as in the paper)."""
+    T, tc = config.diffusion.num_steps, config.train
+    start = T if tc.t_max is None else min(tc.t_max, T)
+    if tc.t_curriculum_steps <= 0:
+        return start
+    return round(start + (T - start) * min(1.0, step / tc.t_curriculum_steps))
+
+
 def step_generator(seed: int, step: int, device: torch.device | str = "cpu") -> torch.Generator:
     """The random stream of one optimiser step (one per device kind: CPU and CUDA streams differ)."""
     state = int(np.random.SeedSequence([seed, step]).generate_state(1)[0])
@@ -84,8 +94,10 @@ def noisy_views(
     joints: np.ndarray,
     K: torch.Tensor,
     generator: torch.Generator,
+    t_max: int | None = None,
 ) -> NoisyViews:
-    """Draw t ~ U{1..T} and H_t ~ q(H_t | H_0) (Sec. III-B) for camera-from-base ``pose`` ``[B, 4, 4]``."""
+    """Draw t ~ U{1..t_max} (default T) and H_t ~ q(H_t | H_0) (Sec. III-B) for camera-from-base
+    ``pose`` ``[B, 4, 4]``."""
     net = config.network
     n = len(pose)
     points = torch.from_numpy(robot.surface_points(joints))
@@ -93,7 +105,7 @@ def noisy_views(
     points_ref = points - centroid[:, None]
     size = torch.tensor([net.input_size], dtype=torch.float64).repeat(n, 1)
     pose_ref_0 = centroid_frame(pose.double(), centroid)
-    t = torch.randint(1, config.diffusion.num_steps + 1, (n,), generator=generator)
+    t = torch.randint(1, (t_max or config.diffusion.num_steps) + 1, (n,), generator=generator)
     pose_ref_t = noiser.add_noise(pose_ref_0, t, K.double(), size, generator)
     boxes, K_crop = crop_geometry(pose_ref_t, points_ref, K.double(), net.render_size)
     return NoisyViews(t, pose_ref_0, pose_ref_t, centroid, points_ref, boxes, K_crop)
@@ -126,10 +138,11 @@ def frames_batch(
     config: Config,
     generator: torch.Generator,
     device: torch.device,
+    t_max: int | None = None,
 ) -> dict[str, torch.Tensor]:
-    """A training batch from a collated :class:`FrameDataset` batch."""
+    """A training batch from a collated :class:`FrameDataset` batch (t up to ``t_max``, default T)."""
     joints = frames["joints"].numpy()
-    views = noisy_views(robot, noiser, config, frames["pose"], joints, frames["K"], generator)
+    views = noisy_views(robot, noiser, config, frames["pose"], joints, frames["K"], generator, t_max)
     images = frames["image"].to(device, non_blocking=True).float().div_(255.0)
     crops = crop_batch(images, views.boxes.to(device), config.network.render_size)
     return denoising_batch(views, crops, joints, renderer)
