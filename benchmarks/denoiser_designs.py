@@ -63,27 +63,6 @@ Pool = dict[str, torch.Tensor]
 SANITY = ("none", "clean", "rotation")
 
 
-def clean_profile():
-    """Sanity scenes: the robot 0.9-1.6 m away, centred and fully in view; no distractors,
-    occluders, photographs, blur, noise, colour jitter or JPEG loss."""
-    from monose3.data.scenes import SceneProfile
-
-    return SceneProfile(
-        name="clean",
-        distance=(0.9, 1.6),
-        offcenter=0.2,
-        min_visible=0.98,
-        distractors=(0, 0),
-        occluder_prob=0.0,
-        low_contrast_prob=0.0,
-        user_background_prob=0.0,
-        blur_prob=0.0,
-        noise_std=(0.0, 0.0),
-        color_jitter=0.0,
-        jpeg_quality=(98, 98),
-    )
-
-
 def _rotation_only_batch(maker, config: Config, seed: int, step: int) -> dict[str, torch.Tensor]:
     """A clean synthetic batch whose H_0 has H_t's translation: render and crop differ by the
     rotation about the centroid alone (the sanity task: is rotation learnable at all?)."""
@@ -110,13 +89,13 @@ def _rotation_only_batch(maker, config: Config, seed: int, step: int) -> dict[st
 def build_pool(data_dir: str, config: Config, num: int, seed: int, sanity: str = "none") -> dict[str, np.ndarray]:
     """``num`` training samples (steps 0.. of a run with this seed), images as uint8; ``data_dir``
     is a DREAM folder or ``"synthetic"``. ``sanity``: ``clean`` synthetic scenes
-    (:func:`clean_profile`), or ``rotation``: clean scenes with H_0's translation set to H_t's."""
+    (the ``clean`` scene profile), or ``rotation``: clean scenes with H_0's translation set to H_t's."""
     from monose3.data.datasets import load_datasets
     from monose3.training.loop import BatchMaker, Sources
 
     config = with_section(config, "train", seed=seed, num_workers=0)
     if sanity != "none":
-        sources = Sources(synthetic=True, profile=clean_profile())
+        sources = Sources(synthetic=True, profile="clean")
     elif data_dir == "synthetic":
         sources = Sources(synthetic=True)
     else:

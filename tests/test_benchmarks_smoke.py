@@ -181,3 +181,18 @@ def test_denoiser_designs_judges_trained_weights(tmp_path: Path, keep_threads: N
     result = json.loads((tmp_path / "out" / "result_weights00.json").read_text())
     assert set(result["ablation_pct"]) == {"zero", "swap"} and "1-10" in result["curve"][0]["buckets"]
     assert "concat [m.pt]" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("sanity", ["clean", "rotation"])
+def test_denoiser_designs_builds_sanity_pools(sanity: str, keep_threads: None) -> None:
+    """The sanity pools draw clean scenes (the ``clean`` profile); ``rotation`` gives H_0 H_t's translation."""
+    import numpy as np
+
+    from monose3.method.config import get_preset, with_section
+
+    bench = load("denoiser_designs")
+    config = with_section(get_preset("cpu"), "train", batch_size=2)
+    pool = bench.build_pool("synthetic", config, 2, 0, sanity)
+    assert pool["render"].shape[0] == 2 and pool["render"].dtype == np.uint8
+    same_translation = np.allclose(pool["pose_ref_0"][:, :3, 3], pool["pose_ref_t"][:, :3, 3])
+    assert same_translation == (sanity == "rotation")

@@ -15,6 +15,7 @@ from monose3.apps.options import (
     parse_size,
 )
 from monose3.data import validation as v
+from monose3.data.scenes.profiles import PROFILES
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, TRAIN_PRESET
 from monose3.robot.jobs import RENDERERS
@@ -23,7 +24,6 @@ from monose3.training.formats import check_checkpoint
 # ---- generate -----------------------------------------------------------------------------------
 
 
-GENERATE_PROFILES = ("hard", "reallike", "train")
 
 
 def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,7 +34,7 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--urdf", type=Path, help="custom robot: URDF file (with --keypoints)")
     parser.add_argument("--keypoints", type=Path, help='custom robot: {"keypoints": [{"name", "link", "offset"}]}')
     parser.add_argument("--workers", type=int, default=None, help="processes [one per CPU core]; 0 = no subprocess")
-    parser.add_argument("--profile", choices=GENERATE_PROFILES, default="train", help="scene randomisation [train]")
+    parser.add_argument("--profile", choices=sorted(PROFILES), default="train", help="scene randomisation [train]")
     parser.add_argument("--backgrounds", type=Path, help="folder of images to use as some of the backgrounds")
     parser.add_argument("--size", type=parse_size, default=(640, 480), help="image size WxH [640x480]")
     parser.add_argument("--resume", action="store_true", help="keep the frames already in --out, make the rest")

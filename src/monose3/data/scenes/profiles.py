@@ -76,6 +76,22 @@ PROFILES: dict[str, SceneProfile] = {
         color_jitter=0.3,
         jpeg_quality=(60, 95),
     ),
+    # Sanity scenes (benchmarks/denoiser_designs.py --sanity): the robot 0.9-1.6 m away, centred
+    # and fully in view; no distractors, occluders, photographs, blur, noise, colour jitter or JPEG loss.
+    "clean": SceneProfile(
+        name="clean",
+        distance=(0.9, 1.6),
+        offcenter=0.2,
+        min_visible=0.98,
+        distractors=(0, 0),
+        occluder_prob=0.0,
+        low_contrast_prob=0.0,
+        user_background_prob=0.0,
+        blur_prob=0.0,
+        noise_std=(0.0, 0.0),
+        color_jitter=0.0,
+        jpeg_quality=(98, 98),
+    ),
 }
 
 
