@@ -16,20 +16,11 @@ from monose3.data import validation
 from monose3.errors import Monose3Error
 from monose3.method.estimator import UNRELIABLE_MM, Estimate, PoseEstimator
 from monose3.report.overlays import pose_overlays
-from monose3.robot import get_spec
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import load_model
 from monose3.training.formats import BUNDLED_CHECKPOINT, check_checkpoint
 
 ASSETS = Path(__file__).parent / "assets"
-
-
-def default_checkpoint() -> Path:
-    if not BUNDLED_CHECKPOINT.is_file():
-        raise Monose3Error(
-            f"the bundled model {BUNDLED_CHECKPOINT.name} is missing; reinstall monose3 or pass --checkpoint"
-        )
-    return BUNDLED_CHECKPOINT
 
 
 def load_estimator(
@@ -38,12 +29,12 @@ def load_estimator(
     """The estimator for a checkpoint (default: the Panda model shipped in the package)."""
     import torch
 
-    if robot is not None:
-        get_spec(robot)  # an unknown robot name fails here, before any loading
-    check_checkpoint(checkpoint, robot)  # a folder, another robot: refused before torch.load
+    # An unknown robot, a missing bundled model, a folder, another robot's checkpoint: refused
+    # here, before torch.load.
+    check_checkpoint(checkpoint, robot)
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    model, config = load_model(checkpoint or default_checkpoint(), robot=robot, device=device)
+    model, config = load_model(checkpoint or BUNDLED_CHECKPOINT, robot=robot, device=device)
     return PoseEstimator(model, config, device=device)
 
 
