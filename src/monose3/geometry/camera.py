@@ -20,7 +20,7 @@ from monose3.errors import Monose3Error
 from monose3.geometry.rotations import array_module
 
 CROP_MARGIN = 1.4  # RoboPose: the crop box is the robot's extent about its centre, grown by 1.4
-MIN_DEPTH = 1e-6  # metres: projection divides by at least this (points behind the camera stay finite)
+PROJECTION_EPS_DEPTH = 1e-6  # metres: projection divides by at least this (points behind the camera stay finite)
 # fx and fy in multiples of the image width: 0.1 x is a 157 deg field of view, 10 x a 5.7 deg one.
 FOCAL_RANGE = (0.1, 10.0)
 # The principal point may sit at most this fraction of the image size away from the centre.
@@ -167,9 +167,9 @@ def _check_plausible(K: np.ndarray, w: int, h: int, source: str) -> None:
 
 def project(points, K):
     """Pinhole projection of camera-frame points ``[..., N, 3]`` with K ``[..., 3, 3]`` to
-    pixels ``[..., N, 2]`` (numpy or torch); depths are clamped to ``MIN_DEPTH``."""
+    pixels ``[..., N, 2]`` (numpy or torch); depths are clamped to ``PROJECTION_EPS_DEPTH``."""
     xp = array_module(points)
-    z = xp.clip(points[..., 2:3], MIN_DEPTH, None)
+    z = xp.clip(points[..., 2:3], PROJECTION_EPS_DEPTH, None)
     focal = xp.stack([K[..., 0, 0], K[..., 1, 1]], -1)[..., None, :]
     return points[..., :2] / z * focal + K[..., None, :2, 2]
 
