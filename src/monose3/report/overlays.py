@@ -295,6 +295,7 @@ def pose_overlays(
 
 def _pixels(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pixel positions of camera-frame points; NaN (not drawn) for points behind the camera."""
-    uv = project(np.asarray(points_cam, np.float64), K)
+    points_cam = np.asarray(points_cam, np.float64)
+    uv = project(points_cam, K)
     uv[points_cam[:, 2] <= 0] = np.nan
     return uv
