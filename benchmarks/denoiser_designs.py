@@ -48,7 +48,7 @@ import torch
 from monose3.errors import Monose3Error, run_reporting_errors
 from monose3.method.config import DESIGNS, Config, get_preset, with_section
 from monose3.method.denoiser import Denoiser, pose_features
-from monose3.method.loss import disentangled_parts
+from monose3.method.loss import disentangled_parts, flow_loss, flow_targets
 from monose3.training.loop import learning_rate
 
 BUCKETS = ((1, 10), (11, 20), (21, 50), (51, 100))
@@ -154,6 +154,12 @@ def parts_of(raw: torch.Tensor, batch: dict[str, torch.Tensor], config: Config) 
     return disentangled_parts(raw, *args, config.network.render_size[0])
 
 
+def flow_targets_of(batch: dict[str, torch.Tensor], config: Config, flow: torch.Tensor):
+    """The displacement-field target and mask of ``batch`` on ``flow``'s grid (loss.flow_targets)."""
+    args = (batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"])
+    return flow_targets(*args, config.network.render_size, tuple(flow.shape[-2:]))
+
+
 @torch.no_grad()
 def evaluate(model: Denoiser | None, held: Pool, config: Config, ablation: str = "none") -> dict[str, np.ndarray]:
     """Per-sample Eq. 10 parts on the held-out pool; ``model=None`` is the identity update.
@@ -227,8 +233,14 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         batch = batch_of(train, order[step * bs : (step + 1) * bs], config)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, config)
-        parts = parts_of(model_raw(model, batch), batch, config)
+        if args.flow_weight:
+            raw, flow = model(batch["render"], batch["crop"], batch["t"], batch["pose"], with_flow=True)
+        else:
+            raw = model_raw(model, batch)
+        parts = parts_of(raw, batch, config)
         loss = args.xyz_weight * (parts["xy"].mean() + parts["z"].mean()) + args.rot_weight * parts["rot"].mean()
+        if args.flow_weight:
+            loss = loss + args.flow_weight * flow_loss(flow, *flow_targets_of(batch, config, flow))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
@@ -258,6 +270,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         "lr": config.train.lr,
         "train_t_max": args.train_t_max,
         "xyz_weight": args.xyz_weight,
+        "flow_weight": args.flow_weight,
     }
     recipe["pool"] = len(train["t"])
     name = design + (f" [{args.tag}]" if args.tag else "")
@@ -385,6 +398,9 @@ def main(argv: list[str] | None = None) -> int:
         "--rotation-output", default="6d", choices=["6d", "so3", "abs6d"], help="NetworkConfig.rotation_output"
     )
     p.add_argument("--xyz-weight", type=float, default=1.0, help="weight of the xy and z parts (0: rotation only)")
+    p.add_argument(
+        "--flow-weight", type=float, default=0.0, help="weight of the cost-volume design's auxiliary flow loss"
+    )
     p.add_argument("--lr", type=float, help="Adam learning rate after warm-up [the preset's, 3e-4]")
     p.add_argument("--train-t-max", type=int, help="train on samples with t <= this only")
     p.add_argument("--tag", default="", help="recipe name, added to the design's name and its result file")
@@ -399,6 +415,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.report:
         report(out)
         return 0
+    if args.flow_weight and set(args.designs) - {"cost-volume"}:
+        raise Monose3Error("--flow-weight needs --designs cost-volume, the one design that predicts a flow field")
     config = get_preset(args.preset)
     pools = Path(args.pool_dir) / args.preset
     if args.sanity != "none":

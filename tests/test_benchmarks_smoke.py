@@ -162,6 +162,9 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
         assert [row["samples"] for row in result["curve"]] == [4, 8]
         assert set(result["ablation_pct"]) == {"zero", "swap"}
     assert (tmp_path / "out" / "designs.png").stat().st_size > 10_000
+    argv[argv.index("concat") : argv.index("concat-grid") + 1] = ["cost-volume", "--flow-weight", "1", "--tag", "flow"]
+    assert bench.main(argv) == 0
+    assert "cost-volume [flow]" in capsys.readouterr().out
 
 
 @pytest.mark.slow

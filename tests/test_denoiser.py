@@ -4,8 +4,8 @@ import torch
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_6d_to_matrix
 from monose3.method.config import DESIGNS, Config, NetworkConfig, get_preset, with_section
-from monose3.method.denoiser import POSE_FEATURES, Denoiser, pose_features, timestep_embedding
-from monose3.method.loss import disentangled_loss
+from monose3.method.denoiser import POSE_FEATURES, Denoiser, local_correlation, pose_features, timestep_embedding
+from monose3.method.loss import disentangled_loss, flow_loss, flow_targets
 from monose3.method.update import apply_update, raw_to_update, true_update, update_to_raw
 
 
@@ -116,7 +116,7 @@ def test_unknown_design_is_refused():
         Denoiser(NetworkConfig(backbone="resnet18", design="nope"))
 
 
-@pytest.mark.parametrize("design", ["concat-grid", "siamese-grid"])
+@pytest.mark.parametrize("design", ["concat-grid", "siamese-grid", "cost-volume"])
 def test_grid_designs_give_nine_outputs_at_any_render_size(design):
     for size in ((64, 48), (128, 96), (320, 240)):
         net = Denoiser(NetworkConfig(backbone="resnet18", render_size=size, design=design)).eval()
@@ -184,3 +184,41 @@ def test_so3_and_abs6d_outputs_map_exactly_onto_the_rotation_they_mean():
     pose = torch.cat([matrix_to_rotation_6d(rot_t), torch.zeros(2, 4)], dim=1)
     _, d_rot, _ = raw_to_update(abs6d_raw(raw, pose), 64)
     assert torch.allclose(d_rot @ rot_t, rot_0, atol=1e-5)
+
+
+def test_cost_volume_peaks_at_the_displacement_between_its_inputs():
+    torch.manual_seed(2)
+    a = torch.randn(2, 16, 10, 12)
+    b = torch.roll(a, shifts=(1, -2), dims=(2, 3))  # b(x + d) = a(x) for d = (dy, dx) = (1, -2)
+    cost = local_correlation(a, b, radius=3)
+    assert cost.shape == (2, 49, 10, 12)
+    inner = cost[:, :, 3:-3, 3:-3].mean(dim=(0, 2, 3))  # away from the zero padding
+    dy, dx = divmod(int(inner.argmax()), 7)
+    assert (dy - 3, dx - 3) == (1, -2)
+    assert torch.allclose(inner.max(), torch.tensor(1.0), atol=1e-5)  # normalised features: cosine 1
+
+
+def test_flow_targets_are_the_shift_of_the_robot_between_two_poses():
+    h_t = _poses(3, 8)
+    # A thin slab seen face on (same depth for all points): a sideways move shifts every point alike.
+    points = torch.randn(3, 400, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([0.2, 0.2, 0.0])
+    h_t[:, :3, :3] = torch.eye(3)
+    K = _crop_K(3)
+    flow, mask = flow_targets(h_t, h_t, K, points, (320, 240), (6, 8))
+    assert flow.shape == (3, 2, 6, 8) and mask.any() and torch.equal(flow, torch.zeros_like(flow))
+    h_0 = h_t.clone()
+    h_0[:, 0, 3] += 0.01 * h_t[:, 2, 3]  # 0.01 of the depth along x: fx * 0.01 = 4 px to the right
+    flow, mask = flow_targets(h_t, h_0, K, points, (320, 240), (6, 8))
+    m = mask.expand_as(flow)
+    assert torch.allclose(flow[:, 0][m[:, 0]], torch.tensor(4.0 / 320), atol=1e-5)  # units of the render width
+    assert torch.allclose(flow[:, 1][m[:, 1]], torch.tensor(0.0), atol=1e-5)
+    assert flow_loss(flow, flow, mask) == 0 and flow_loss(torch.zeros_like(flow), flow, mask) > 0
+
+
+def test_only_the_cost_volume_design_returns_a_flow():
+    render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([3, 40])
+    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="cost-volume"))
+    raw, flow = net(render, crop, t, with_flow=True)
+    assert raw.shape == (2, 9) and flow.shape == (2, 2, 3, 4)
+    with pytest.raises(ValueError, match="predicts no flow"):
+        Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48)))(render, crop, t, with_flow=True)

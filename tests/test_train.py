@@ -190,6 +190,8 @@ def kuka_shards(tmp_path_factory):
         (["--out", "FILE"], "is a file"),
         (["--t-max", "0"], "--t-max must be at least 1"),
         (["--t-curriculum-steps", "-5"], "--t-curriculum-steps must be at least 0"),
+        (["--flow-weight", "1"], "--flow-weight needs --design cost-volume"),
+        (["--flow-weight", "-1", "--design", "cost-volume"], "--flow-weight must be 0 or more"),
     ],
 )
 def test_cli_bad_input_is_one_line_before_any_work(tmp_path, capsys, kuka_shards, extra, words):
@@ -251,6 +253,15 @@ def test_every_design_trains_and_estimates(frames, design, rotation_output):
     est = estimator.estimate([frame.load_image()], frame.K[None], frame.joints[None], ddim_steps=1, direct_steps=1)
     estimator.close()
     assert est.poses.shape == (1, 4, 4) and torch.isfinite(torch.from_numpy(est.poses)).all()
+
+
+def test_the_flow_loss_joins_the_cost_volume_designs_training_step(frames):
+    config = with_section(tiny_config(flow_weight=0.5), "network", design="cost-volume")
+    _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
+    model = Denoiser(config.network)
+    loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
+    assert parts["flow"] > 0  # the forward process moves the robot, so the field is not zero
+    assert loss == pytest.approx(parts["xy"] + parts["rot"] + parts["z"] + 0.5 * parts["flow"], rel=1e-5)
 
 
 def test_t_curriculum_caps_and_then_widens_the_drawn_timesteps(frames):

@@ -24,8 +24,6 @@ from monose3.training.formats import check_checkpoint
 # ---- generate -----------------------------------------------------------------------------------
 
 
-
-
 def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output folder (DREAM layout)")
     parser.add_argument("--num", required=True, type=int, help="number of frames")
@@ -102,6 +100,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         help="how the denoiser's rotation outputs are read (default 6d, the paper's; see docs/DESIGNS.md)",
     )
     p.add_argument("--rot-weight", type=float, help="weight of Eq. 10's rotation part in the loss [1]")
+    p.add_argument(
+        "--flow-weight",
+        type=float,
+        help="weight of the cost-volume design's auxiliary displacement-field loss [0: off; see docs/DESIGNS.md]",
+    )
     p.add_argument("--t-max", type=int, help="curriculum: draw t <= T_MAX (default: T, the paper's U{1..T})")
     p.add_argument(
         "--t-curriculum-steps", type=int, help="raise --t-max linearly to T over this many steps [0: keep it]"
@@ -148,6 +151,12 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
         value = getattr(args, name)
         if value is not None and not value > 0:
             raise Monose3Error(f"--{name.replace('_', '-')} must be positive, got {value}")
+    if args.flow_weight is not None and not args.flow_weight >= 0:
+        raise Monose3Error(f"--flow-weight must be 0 or more, got {args.flow_weight}")
+    if args.flow_weight and args.design != "cost-volume":
+        raise Monose3Error(
+            "--flow-weight needs --design cost-volume, the one design that predicts a displacement field"
+        )
     for d in args.data:
         v.check_input_dir(d, "--data")
     if args.backgrounds:
@@ -157,7 +166,6 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     from monose3.data.datasets import load_datasets
 
     return SimpleNamespace(frames=load_datasets(args.data, args.robot) if args.data else [])
-
 
 
 # ---- evaluate -----------------------------------------------------------------------------------

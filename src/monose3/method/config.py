@@ -32,7 +32,7 @@ class DiffusionConfig:
 
 
 # The denoiser architectures (method.denoiser): "concat" is the paper's; see docs/DESIGNS.md.
-DESIGNS = ("concat", "siamese", "siamese-corr", "siamese-pose", "concat-grid", "siamese-grid")
+DESIGNS = ("concat", "siamese", "siamese-corr", "siamese-pose", "concat-grid", "siamese-grid", "cost-volume")
 # How the network's rotation outputs are read: "6d" is the paper's offset of the 6D rotation.
 ROTATION_OUTPUTS = ("6d", "so3", "abs6d")
 
@@ -69,6 +69,9 @@ class TrainConfig:
     # (docs/DESIGNS.md).
     t_max: int | None = None
     t_curriculum_steps: int = 0
+    # Weight of the cost-volume design's auxiliary loss (method.loss.flow_targets; not in the
+    # paper): where each part of the robot moves between render and crop, per cell.
+    flow_weight: float = 0.0
     checkpoint_every: int = 500
     log_every: int = 20
     num_workers: int = 4

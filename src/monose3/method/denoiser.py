@@ -29,6 +29,9 @@ POSE_DESIGNS = ("siamese-pose",)  # designs whose head reads pose_features of H_
 _GRID = (3, 4)  # (h, w) cells the "-grid" designs pool the last feature map to (not one global mean)
 POSE_FEATURES = 10  # x_t of Eq. 4 in the crop (9) + log(f / w) of the crop intrinsics (1)
 _CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (stride 8)
+# "cost-volume": (radius, stride) of its two cost volumes; 4 cells at stride 8 and 3 at stride 16
+# reach +-32 and +-48 px of a 128x96 crop, the render-crop offsets of t <= ~30.
+_COST_LEVELS = ((4, 8), (3, 16))
 
 
 def _resnet(backbone: str) -> torchvision.models.ResNet:
@@ -188,11 +191,63 @@ class SiameseNet(nn.Module):
         return self.head(x if extra is None else torch.cat([x, extra], dim=1))
 
 
+def _conv_block(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)
+    )
+
+
+class CostVolumeNet(nn.Module):
+    """Render and crop through one shared trunk; the rest of the network sees **only their
+    comparison**: FlowNet-C cost volumes (:func:`local_correlation`) at strides 8 and 16
+    (:data:`_COST_LEVELS`), with CoordConv channels and C_emb, and a :class:`GridHead`.
+
+    No path carries the crop's (or the render's) own features past the correlation, so the
+    crop-alone shortcut the other designs take for xy (docs/DESIGNS.md) does not exist: a
+    shift, a rotation and a scale change of the robot between render and crop are all read
+    as the displacement field that the cost volume encodes, where each cell is (the grid)."""
+
+    def __init__(self, config: NetworkConfig, width: int = 128):
+        super().__init__()
+        net = _resnet(config.backbone)
+        self.fine = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
+        self.coarse = net.layer3
+        (r_fine, _), (r_coarse, _) = _COST_LEVELS
+        emb = config.time_embedding_dim
+        self.fine_cost = nn.Sequential(
+            _conv_block((2 * r_fine + 1) ** 2 + 2 + emb, width), _conv_block(width, width, stride=2)
+        )
+        self.coarse_cost = nn.Sequential(
+            _conv_block(width + (2 * r_coarse + 1) ** 2 + 2, 2 * width),
+            _conv_block(2 * width, 2 * width),
+            _conv_block(2 * width, 2 * width),
+        )
+        self.head = GridHead(2 * width, 0)
+        self.flow = nn.Conv2d(2 * width, 2, 1)  # the auxiliary displacement field (loss.flow_targets)
+
+    def forward(
+        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The raw outputs ``[B, 9]`` and the predicted displacement field ``[B, 2, h/16, w/16]``."""
+        b = render.shape[0]
+        (r_fine, _), (r_coarse, _) = _COST_LEVELS
+        fine = self.fine(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
+        coarse = self.coarse(fine)
+        h, w = fine.shape[-2:]
+        x = [local_correlation(fine[:b], fine[b:], r_fine), coord_channels(b, h, w, fine)]
+        x = self.fine_cost(torch.cat([*x, emb[:, :, None, None].expand(b, -1, h, w)], dim=1))
+        h, w = coarse.shape[-2:]
+        cost = local_correlation(coarse[:b], coarse[b:], r_coarse)
+        x = self.coarse_cost(torch.cat([x, cost, coord_channels(b, h, w, coarse)], dim=1))
+        return self.head(x), self.flow(x)
+
+
 class Denoiser(nn.Module):
     """The pose denoiser of Sec. III-C; ``config.design`` picks the architecture (:data:`DESIGNS`).
 
     ``concat`` (the paper's): a ResNet (from scratch) over render (3) + crop (3) + timestep
     embedding (C_emb) channels. ``siamese``, ``siamese-corr``, ``siamese-pose``: :class:`SiameseNet`.
+    ``cost-volume``: :class:`CostVolumeNet`, whose head sees only the comparison.
     Outputs raw values; :func:`raw_to_update` turns them into (v_xy, dR, v_z).
     """
 
@@ -225,6 +280,8 @@ class Denoiser(nn.Module):
             nn.init.zeros_(net.fc.weight)
             nn.init.zeros_(net.fc.bias)
             self.net: nn.Module = net
+        elif config.design == "cost-volume":
+            self.net = CostVolumeNet(config)
         else:
             self.net = SiameseNet(
                 config,
@@ -238,13 +295,30 @@ class Denoiser(nn.Module):
         """Whether :meth:`forward` needs ``pose`` (:func:`pose_features` of H_t)."""
         return needs_pose(self.config)
 
+    @property
+    def predicts_flow(self) -> bool:
+        """Whether :meth:`forward` can also return the displacement field (``cost-volume``)."""
+        return self.config.design == "cost-volume"
+
     def forward(
-        self, render: torch.Tensor, crop: torch.Tensor, t: torch.Tensor, pose: torch.Tensor | None = None
-    ) -> torch.Tensor:
+        self,
+        render: torch.Tensor,
+        crop: torch.Tensor,
+        t: torch.Tensor,
+        pose: torch.Tensor | None = None,
+        with_flow: bool = False,
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """``render``, ``crop``: ``[B, 3, h, w]`` in [0, 1]; ``t``: ``[B]`` steps; ``pose``:
-        ``[B, 10]`` from :func:`pose_features` (only read by ``siamese-pose``). Returns ``[B, 9]``."""
+        ``[B, 10]`` from :func:`pose_features` (only read by ``siamese-pose``). Returns ``[B, 9]``,
+        and with ``with_flow`` (``cost-volume`` only) also the predicted displacement field
+        ``[B, 2, h/16, w/16]`` for :func:`monose3.method.loss.flow_loss`."""
+        if with_flow and not self.predicts_flow:
+            raise ValueError(f"the {self.config.design!r} denoiser predicts no flow; the cost-volume design does")
         emb = timestep_embedding(t, self.config.time_embedding_dim).to(render.dtype)
-        if self.config.design not in ("concat", "concat-grid"):
+        flow = None
+        if self.predicts_flow:
+            raw, flow = self.net(render, crop, emb, pose)
+        elif self.config.design not in ("concat", "concat-grid"):
             raw = self.net(render, crop, emb, pose)
         else:
             b, _, h, w = render.shape
@@ -252,6 +326,11 @@ class Denoiser(nn.Module):
             if self.config.design == "concat-grid":
                 x.append(coord_channels(b, h, w, render))
             raw = self.net(torch.cat(x, dim=1))
+        raw = self.read_rotation(raw, pose)
+        return (raw, flow) if with_flow else raw
+
+    def read_rotation(self, raw: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:
+        """The raw outputs in the 6D layout of :func:`raw_to_update`, whatever ``rotation_output``."""
         if self.config.rotation_output == "so3":
             return so3_raw(raw)
         if self.config.rotation_output == "abs6d":
