@@ -256,10 +256,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
             print(f"{design}: {row['samples']} samples, {train_s:.0f} s, held-out {row['buckets']['all']}", flush=True)
             tick = time.perf_counter()
     normal = evaluate(model, held, config)
-    ablations = {}
-    for name in ("zero", "swap"):
-        ablated = evaluate(model, held, config, name)
-        ablations[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
+    ablations = render_ablation(model, held, config, normal)
     if args.save_model:
         from monose3.training.checkpoints import save_checkpoint
 
@@ -274,7 +271,47 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
     }
     recipe["pool"] = len(train["t"])
     name = design + (f" [{args.tag}]" if args.tag else "")
-    return {"design": name, "rot_weight": args.rot_weight, "recipe": recipe, "curve": curve, "ablation_pct": ablations}
+    result = {
+        "design": name,
+        "rot_weight": args.rot_weight,
+        "recipe": recipe,
+        "curve": curve,
+        "ablation_pct": ablations,
+    }
+    return result | flow_check(model, held, config)
+
+
+def render_ablation(model: Denoiser, held: Pool, config: Config, normal: dict[str, np.ndarray]) -> dict:
+    """How much each held-out part grows (%) when the render is zeroed or swapped for another sample's."""
+    out = {}
+    for name in ("zero", "swap"):
+        ablated = evaluate(model, held, config, name)
+        out[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
+    return out
+
+
+@torch.no_grad()
+def flow_check(model: Denoiser, held: Pool, config: Config) -> dict:
+    """For a design that predicts the displacement field (``cost-volume``): its held-out L1 error
+    by t bucket (units of the render width), with the render as is, zeroed and swapped, and the
+    error of a zero field; ``{}`` for the other designs."""
+    if not model.predicts_flow:
+        return {}
+    model.eval()
+    n, errors = len(held["t"]), {k: [] for k in ("render", "zero", "swap", "zero field")}
+    for start in range(0, n, 32):
+        idx = torch.arange(start, min(n, start + 32))
+        batch = batch_of(held, idx, config)
+        renders = {"render": batch["render"], "zero": torch.zeros_like(batch["render"])}
+        renders["swap"] = batch_of(held, (idx + 1) % n, config)["render"]
+        for name, render in renders.items():
+            _, flow = model(render, batch["crop"], batch["t"], batch["pose"], with_flow=True)
+            target, mask = flow_targets_of(batch, config, flow)
+            cells = mask.to(flow.dtype).sum((1, 2, 3)).clamp(min=1) * 2
+            errors[name].append((((flow - target).abs() * mask).sum((1, 2, 3)) / cells).numpy())
+            if name == "render":
+                errors["zero field"].append(((target.abs() * mask).sum((1, 2, 3)) / cells).numpy())
+    return {"flow_l1": bucket_means({k: np.concatenate(v) for k, v in errors.items()}, held["t"].numpy())}
 
 
 def judge_weights(path: str, config: Config, held: Pool) -> dict:
@@ -287,13 +324,11 @@ def judge_weights(path: str, config: Config, held: Pool) -> dict:
     config = with_section(config, "network", design=saved.network.design)
     state_samples = _samples_seen(path)
     normal = evaluate(model, held, config)
-    ablations = {}
-    for name in ("zero", "swap"):
-        ablated = evaluate(model, held, config, name)
-        ablations[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
+    ablations = render_ablation(model, held, config, normal)
     row = {"samples": state_samples, "train_s": 0.0, "buckets": bucket_means(normal, held["t"].numpy())}
     name = f"{saved.network.design} [{Path(path).name}]"
-    return {"design": name, "rot_weight": saved.train.rot_weight, "curve": [row], "ablation_pct": ablations}
+    result = {"design": name, "rot_weight": saved.train.rot_weight, "curve": [row], "ablation_pct": ablations}
+    return result | flow_check(model, held, config)
 
 
 def _samples_seen(path: str) -> int:
@@ -335,6 +370,11 @@ def print_table(results: list[dict], identity: dict) -> None:
             f"{name:<22}{last['samples']:>8}{last['train_s']:>8.0f}  {cells(last['buckets'])}  {pct}"
             f"  abl>=30%:{yes[v['ablation_ge_30pct']]} rot<id:{yes[v['rot_below_identity']]}"
         )
+    for r in results:  # the cost-volume design's displacement field (flow_check)
+        flow = r.get("flow_l1", {})
+        for kind in flow.get("all", {}):
+            cells = "  ".join(f"t {b} {flow[b][kind]:.4f}" for b in [*buckets, "all"])
+            print(f"  {r['design']}: flow L1 with {kind}: {cells}")
 
 
 def plot(results: list[dict], identity: dict, path: Path) -> Path:
