@@ -164,7 +164,8 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert (tmp_path / "out" / "designs.png").stat().st_size > 10_000
     argv[argv.index("concat") : argv.index("concat-grid") + 1] = ["cost-volume", "--flow-weight", "1", "--tag", "flow"]
     assert bench.main(argv) == 0
-    assert "cost-volume [flow]" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "cost-volume [flow]" in text and "flow L1 with zero field" in text
 
 
 @pytest.mark.slow
