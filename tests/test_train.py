@@ -262,6 +262,9 @@ def test_the_flow_loss_joins_the_cost_volume_designs_training_step(frames):
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
     assert parts["flow"] > 0  # the forward process moves the robot, so the field is not zero
     assert loss == pytest.approx(parts["xy"] + parts["rot"] + parts["z"] + 0.5 * parts["flow"], rel=1e-5)
+    from monose3.training.logs import window_means
+
+    assert window_means([(loss, parts)])["loss_flow"] == parts["flow"]  # logged beside Eq. 10's parts
 
 
 def test_t_curriculum_caps_and_then_widens_the_drawn_timesteps(frames):

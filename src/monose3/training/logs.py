@@ -8,10 +8,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-LOG_FIELDS = ["step", "samples", "loss", "loss_xy", "loss_rot", "loss_z", "lr", "samples_per_s", "source"]
-
-
-
+# loss_flow: the cost-volume design's auxiliary loss (TrainConfig.flow_weight), empty when off.
+LOG_FIELDS = ["step", "samples", "loss", "loss_xy", "loss_rot", "loss_z", "loss_flow", "lr", "samples_per_s", "source"]
 
 
 class CsvTensorBoardLog:
@@ -42,7 +40,6 @@ class CsvTensorBoardLog:
         self.tb.close()
 
 
-
 class LogWindow:
     """The losses since the last log row, the progress bar and the log (rank 0 only)."""
 
@@ -69,14 +66,12 @@ class LogWindow:
         self.log.write(row)
 
 
-
 def window_means(window: list[tuple[float, dict[str, float]]]) -> dict[str, float]:
     """Mean loss and Eq. 10 parts over the logging window (single batches are too noisy to read)."""
     if not window:
         return {}
-    means = {f"loss_{k}": sum(p[k] for _, p in window) / len(window) for k in ("xy", "rot", "z")}
+    means = {f"loss_{k}": sum(p[k] for _, p in window) / len(window) for k in window[0][1]}
     return {"loss": sum(v for v, _ in window) / len(window), **means}
-
 
 
 def _running_mean(values: list[float], width: int) -> list[float]:
@@ -84,7 +79,6 @@ def _running_mean(values: list[float], width: int) -> list[float]:
         sum(values[max(0, i - width + 1) : i + 1]) / len(values[max(0, i - width + 1) : i + 1])
         for i in range(len(values))
     ]
-
 
 
 def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path | None:
