@@ -24,7 +24,9 @@ put together afterwards with ``--report``::
 
 Recipes: ``--rotation-output`` (``NetworkConfig.rotation_output``), ``--rot-weight``,
 ``--xyz-weight 0`` (the rotation part alone), ``--train-t-max`` (train on small t only),
-``--lr``, named with ``--tag``. ``--sanity clean`` / ``--sanity rotation`` build pools of
+``--lr``, ``--flow-weight`` (the ``cost-volume`` design's auxiliary displacement-field loss;
+its held-out error, with the render as is, zeroed and swapped, is then reported too), named
+with ``--tag``. ``--sanity clean`` / ``--sanity rotation`` build pools of
 clean synthetic scenes, the second with H_0 given H_t's translation, so render and crop
 differ by a rotation alone: the sanity task of whether rotation is learnable at all
 (docs/DESIGNS.md).
