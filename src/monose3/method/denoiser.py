@@ -29,9 +29,9 @@ POSE_DESIGNS = ("siamese-pose",)  # designs whose head reads pose_features of H_
 _GRID = (3, 4)  # (h, w) cells the "-grid" designs pool the last feature map to (not one global mean)
 POSE_FEATURES = 10  # x_t of Eq. 4 in the crop (9) + log(f / w) of the crop intrinsics (1)
 _CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (stride 8)
-# "cost-volume": (radius, stride) of its two cost volumes; 4 cells at stride 8 and 3 at stride 16
-# reach +-32 and +-48 px of a 128x96 crop, the render-crop offsets of t <= ~30.
-_COST_LEVELS = ((4, 8), (3, 16))
+# "cost-volume": radii of its two cost volumes, at strides 8 and 16; 4 and 3 cells reach +-32
+# and +-48 px of a 128x96 crop, the render-crop offsets of t <= ~30.
+_COST_RADII = (4, 3)
 
 
 def _resnet(backbone: str) -> torchvision.models.ResNet:
@@ -200,7 +200,7 @@ def _conv_block(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
 class CostVolumeNet(nn.Module):
     """Render and crop through one shared trunk; the rest of the network sees **only their
     comparison**: FlowNet-C cost volumes (:func:`local_correlation`) at strides 8 and 16
-    (:data:`_COST_LEVELS`), with CoordConv channels and C_emb, and a :class:`GridHead`.
+    (radii :data:`_COST_RADII`), with CoordConv channels and C_emb, and a :class:`GridHead`.
 
     No path carries the crop's (or the render's) own features past the correlation, so the
     crop-alone shortcut the other designs take for xy (docs/DESIGNS.md) does not exist: a
@@ -212,7 +212,7 @@ class CostVolumeNet(nn.Module):
         net = _resnet(config.backbone)
         self.fine = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
         self.coarse = net.layer3
-        (r_fine, _), (r_coarse, _) = _COST_LEVELS
+        r_fine, r_coarse = _COST_RADII
         emb = config.time_embedding_dim
         self.fine_cost = nn.Sequential(
             _conv_block((2 * r_fine + 1) ** 2 + 2 + emb, width), _conv_block(width, width, stride=2)
@@ -230,7 +230,7 @@ class CostVolumeNet(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The raw outputs ``[B, 9]`` and the predicted displacement field ``[B, 2, h/16, w/16]``."""
         b = render.shape[0]
-        (r_fine, _), (r_coarse, _) = _COST_LEVELS
+        r_fine, r_coarse = _COST_RADII
         fine = self.fine(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
         coarse = self.coarse(fine)
         h, w = fine.shape[-2:]
