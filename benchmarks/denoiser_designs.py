@@ -50,7 +50,7 @@ import torch
 from monose3.errors import Monose3Error, run_reporting_errors
 from monose3.method.config import DESIGNS, Config, get_preset, with_section
 from monose3.method.denoiser import Denoiser, pose_features
-from monose3.method.loss import disentangled_parts, flow_loss, flow_targets
+from monose3.method.loss import disentangled_parts, flow_errors, flow_loss, flow_targets
 from monose3.training.loop import learning_rate
 
 BUCKETS = ((1, 10), (11, 20), (21, 50), (51, 100))
@@ -309,10 +309,9 @@ def flow_check(model: Denoiser, held: Pool, config: Config) -> dict:
         for name, render in renders.items():
             _, flow = model(render, batch["crop"], batch["t"], batch["pose"], with_flow=True)
             target, mask = flow_targets_of(batch, config, flow)
-            cells = mask.to(flow.dtype).sum((1, 2, 3)).clamp(min=1) * 2
-            errors[name].append((((flow - target).abs() * mask).sum((1, 2, 3)) / cells).numpy())
+            errors[name].append(flow_errors(flow, target, mask).numpy())
             if name == "render":
-                errors["zero field"].append(((target.abs() * mask).sum((1, 2, 3)) / cells).numpy())
+                errors["zero field"].append(flow_errors(torch.zeros_like(flow), target, mask).numpy())
     return {"flow_l1": bucket_means({k: np.concatenate(v) for k, v in errors.items()}, held["t"].numpy())}
 
 

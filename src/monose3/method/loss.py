@@ -89,3 +89,9 @@ def flow_loss(flow: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> t
     """Mean L1 error of a predicted displacement field ``[B, 2, h, w]`` over the cells in ``mask``."""
     mask = mask.to(flow.dtype)
     return ((flow - target).abs() * mask).sum() / (2 * mask.sum()).clamp(min=1)
+
+
+def flow_errors(flow: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """:func:`flow_loss` of each sample alone, ``[B]`` (for judging, not training)."""
+    mask = mask.to(flow.dtype)
+    return ((flow - target).abs() * mask).sum((1, 2, 3)) / (2 * mask.sum((1, 2, 3))).clamp(min=1)

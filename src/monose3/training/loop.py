@@ -99,7 +99,7 @@ def train_step(
     pose = pose_input(config.network, batch["pose_ref_t"], batch["K_crop"], config.diffusion.c_z)
     with_flow = config.train.flow_weight > 0
     with amp():
-        out = model(batch["render"], batch["crop"], batch["t"], pose, **({"with_flow": True} if with_flow else {}))
+        out = model(batch["render"], batch["crop"], batch["t"], pose, with_flow=with_flow)
     raw, flow = out if with_flow else (out, None)
     poses = (batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"])
     _, parts = disentangled_loss(raw.float(), *poses, config.network.render_size[0])
