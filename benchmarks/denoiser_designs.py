@@ -48,9 +48,10 @@ import numpy as np
 import torch
 
 from monose3.errors import Monose3Error, run_reporting_errors
-from monose3.method.config import DESIGNS, Config, get_preset, with_section
+from monose3.method.config import DESIGNS, FIELD_DESIGNS, Config, get_preset, with_section
 from monose3.method.denoiser import Denoiser, pose_features
-from monose3.method.loss import disentangled_parts, flow_errors, flow_loss, flow_targets
+from monose3.method.flow_pose import field_targets, render_surface
+from monose3.method.loss import disentangled_parts, flow_errors, flow_loss
 from monose3.training.loop import learning_rate
 
 BUCKETS = ((1, 10), (11, 20), (21, 50), (51, 100))
@@ -120,6 +121,8 @@ def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: 
     """The cached pool at ``path``, built from ``data_dir`` first when missing or too small."""
     if path.is_file():
         cached = dict(np.load(path))
+        if "depth" not in cached:
+            raise Monose3Error(f"the pool {path} holds no render depth (built before flow-solve); delete it to rebuild")
         if len(cached["t"]) >= num:
             return {k: torch.from_numpy(v[:num]) for k, v in cached.items()}
     if data_dir is None:
@@ -133,21 +136,25 @@ def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: 
 
 
 def batch_of(pool: Pool, idx: torch.Tensor, config: Config) -> dict[str, torch.Tensor]:
-    """Float batch of pool rows ``idx`` plus the pose features of H_t (network.pose_features)."""
+    """Float batch of pool rows ``idx`` plus the pose features of H_t (denoiser.pose_features) and
+    the render's visible surface (flow_pose.render_surface)."""
     batch = {k: v[idx] for k, v in pool.items()}
     for key in ("render", "crop"):
         batch[key] = batch[key].float() / 255.0
     net, c_z = config.network, config.diffusion.c_z
     batch["pose"] = pose_features(batch["pose_ref_t"], batch["K_crop"], net.render_size, c_z).float()
+    batch["surface"] = render_surface(batch["depth"].float(), batch["pose_ref_t"], batch["K_crop"])
     return batch
 
 
 # ---- training and evaluation ----------------------------------------------------------------
 
 
-def model_raw(model: Denoiser, batch: dict[str, torch.Tensor], render: torch.Tensor | None = None) -> torch.Tensor:
-    """The network's raw output on ``batch``, optionally with another ``render`` (ablation)."""
-    return model(batch["render"] if render is None else render, batch["crop"], batch["t"], batch["pose"])
+def model_out(model: Denoiser, batch: dict, render: torch.Tensor | None = None, with_flow: bool = False):
+    """The network's raw output on ``batch`` (and its field, ``with_flow``), optionally with
+    another ``render`` (ablation: the image only; the geometry of H_t stays this sample's)."""
+    render = batch["render"] if render is None else render
+    return model(render, batch["crop"], batch["t"], batch["pose"], with_flow=with_flow, surface=batch["surface"])
 
 
 def parts_of(raw: torch.Tensor, batch: dict[str, torch.Tensor], config: Config) -> dict[str, torch.Tensor]:
@@ -156,10 +163,9 @@ def parts_of(raw: torch.Tensor, batch: dict[str, torch.Tensor], config: Config) 
     return disentangled_parts(raw, *args, config.network.render_size[0])
 
 
-def flow_targets_of(batch: dict[str, torch.Tensor], config: Config, flow: torch.Tensor):
-    """The displacement-field target and mask of ``batch`` on ``flow``'s grid (loss.flow_targets)."""
-    args = (batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"])
-    return flow_targets(*args, config.network.render_size, tuple(flow.shape[-2:]))
+def flow_targets_of(batch: dict, config: Config, flow: torch.Tensor):
+    """The displacement-field target and mask of ``batch`` on ``flow``'s grid (flow_pose.field_targets)."""
+    return field_targets(batch["surface"], batch["pose_ref_0"], config.network.render_size, tuple(flow.shape[-2:]))
 
 
 @torch.no_grad()
@@ -182,7 +188,7 @@ def evaluate(model: Denoiser | None, held: Pool, config: Config, ablation: str =
             render = {"none": None, "zero": torch.zeros_like(batch["render"])}.get(ablation)
             if ablation == "swap":
                 render = batch_of(held, (idx + 1) % n, config)["render"]
-            raw = model_raw(model, batch, render)
+            raw = model_out(model, batch, render)
         for k, v in parts_of(raw.float(), batch, config).items():
             out[k].append(v.numpy())
     return {k: np.concatenate(v) for k, v in out.items()}
@@ -236,9 +242,9 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, config)
         if args.flow_weight:
-            raw, flow = model(batch["render"], batch["crop"], batch["t"], batch["pose"], with_flow=True)
+            raw, flow = model_out(model, batch, with_flow=True)
         else:
-            raw = model_raw(model, batch)
+            raw = model_out(model, batch)
         parts = parts_of(raw, batch, config)
         loss = args.xyz_weight * (parts["xy"].mean() + parts["z"].mean()) + args.rot_weight * parts["rot"].mean()
         if args.flow_weight:
@@ -255,7 +261,8 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
             window = []
             row["buckets"] = bucket_means(evaluate(model, held, config), t_held)
             curve.append(row)
-            print(f"{design}: {row['samples']} samples, {train_s:.0f} s, held-out {row['buckets']['all']}", flush=True)
+            by_t = "  ".join(f"t {b}: {'/'.join(f'{v:.4f}' for v in p.values())}" for b, p in row["buckets"].items())
+            print(f"{design}: {row['samples']} samples, {train_s:.0f} s, held-out xy/rot/z {by_t}", flush=True)
             tick = time.perf_counter()
     normal = evaluate(model, held, config)
     ablations = render_ablation(model, held, config, normal)
@@ -307,7 +314,7 @@ def flow_check(model: Denoiser, held: Pool, config: Config) -> dict:
         renders = {"render": batch["render"], "zero": torch.zeros_like(batch["render"])}
         renders["swap"] = batch_of(held, (idx + 1) % n, config)["render"]
         for name, render in renders.items():
-            _, flow = model(render, batch["crop"], batch["t"], batch["pose"], with_flow=True)
+            _, flow = model_out(model, batch, render, with_flow=True)
             target, mask = flow_targets_of(batch, config, flow)
             errors[name].append(flow_errors(flow, target, mask).numpy())
             if name == "render":
@@ -456,8 +463,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.report:
         report(out)
         return 0
-    if args.flow_weight and set(args.designs) - {"cost-volume"}:
-        raise Monose3Error("--flow-weight needs --designs cost-volume, the one design that predicts a flow field")
+    if args.flow_weight and set(args.designs) - set(FIELD_DESIGNS):
+        raise Monose3Error(f"--flow-weight needs --designs among {FIELD_DESIGNS}, the designs that predict a field")
     config = get_preset(args.preset)
     pools = Path(args.pool_dir) / args.preset
     if args.sanity != "none":

@@ -11,6 +11,8 @@ from types import ModuleType
 import pytest
 import torch
 
+from monose3.errors import Monose3Error
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
@@ -129,7 +131,10 @@ def _fake_design_pool(n: int, seed: int) -> dict[str, torch.Tensor]:
         return make_pose(rot, torch.randn(n, 3, generator=gen) * 0.05 + torch.tensor([0.0, 0.0, 1.2]))
 
     K = torch.tensor([[150.0, 0, 64], [0, 150, 48], [0, 0, 1]]).repeat(n, 1, 1)
+    depth = torch.zeros(n, 96, 128)
+    depth[:, 24:72, 32:96] = 1.2  # the render's visible surface: a slab in the middle
     return {
+        "depth": depth,
         "render": torch.randint(0, 255, (n, 3, 96, 128), dtype=torch.uint8, generator=gen),
         "crop": torch.randint(0, 255, (n, 3, 96, 128), dtype=torch.uint8, generator=gen),
         "t": torch.randint(1, 101, (n,), generator=gen),
@@ -162,10 +167,14 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
         assert [row["samples"] for row in result["curve"]] == [4, 8]
         assert set(result["ablation_pct"]) == {"zero", "swap"}
     assert (tmp_path / "out" / "designs.png").stat().st_size > 10_000
-    argv[argv.index("concat") : argv.index("concat-grid") + 1] = ["cost-volume", "--flow-weight", "1", "--tag", "flow"]
-    assert bench.main(argv) == 0
+    argv[argv.index("concat") : argv.index("concat-grid") + 1] = ["cost-volume", "flow-solve"]
+    argv[argv.index("abs6d")] = "6d"
+    assert bench.main([*argv, "--flow-weight", "1", "--tag", "flow"]) == 0
     text = capsys.readouterr().out
-    assert "cost-volume [flow]" in text and "flow L1 with zero field" in text
+    assert "cost-volume [flow]" in text and "flow-solve [flow]" in text and "flow L1 with zero field" in text
+    np.savez(pools / "cpu" / "held.npz", **{k: v.numpy() for k, v in _fake_design_pool(8, 1).items() if k != "depth"})
+    with pytest.raises(Monose3Error, match="no render depth"):
+        bench.main(argv)
 
 
 @pytest.mark.slow

@@ -5,7 +5,8 @@ from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_6d_to_matrix
 from monose3.method.config import DESIGNS, Config, NetworkConfig, get_preset, with_section
 from monose3.method.denoiser import POSE_FEATURES, Denoiser, local_correlation, pose_features, timestep_embedding
-from monose3.method.loss import disentangled_loss, flow_loss, flow_targets
+from monose3.method.flow_pose import Surface, render_surface
+from monose3.method.loss import disentangled_loss
 from monose3.method.update import apply_update, raw_to_update, true_update, update_to_raw
 
 
@@ -19,6 +20,17 @@ def _poses(n: int, seed: int) -> torch.Tensor:
 def _crop_K(n: int) -> torch.Tensor:
     K = torch.tensor([[400.0, 0, 160], [0, 410, 120], [0, 0, 1]])
     return K.repeat(n, 1, 1)
+
+
+def _surface(size: tuple[int, int], poses: torch.Tensor | None = None, K: torch.Tensor | None = None) -> Surface:
+    """The visible surface of a render at ``poses`` (default: two of :func:`_poses`): a slab
+    1.5 m away over the crop's middle."""
+    poses = _poses(2, 3) if poses is None else poses
+    w, h = size
+    depth = torch.zeros(len(poses), h, w)
+    depth[:, h // 4 : 3 * h // 4, w // 4 : 3 * w // 4] = 1.5
+    K = _crop_K(len(poses)) * torch.tensor([[w / 320], [h / 240], [1.0]]) if K is None else K
+    return render_surface(depth, poses, K)
 
 
 def test_gram_schmidt_gives_proper_rotations():
@@ -85,14 +97,16 @@ def test_each_design_starts_as_identity_and_learns_from_the_render(design):
     crop, t = torch.rand(4, 3, 48, 64), torch.tensor([1, 5, 50, 90])
     h_t, h_0, K = _poses(4, 5), _poses(4, 6), _crop_K(4)
     pose = pose_features(h_t, K, (64, 48), 1.5) if net.needs_pose else None
+    surface = _surface((64, 48), h_t, K)
     # A zero head: the identity update at init (Eq. 9 with v_xy = 0, dR = I, v_z = 1).
-    assert torch.equal(net(render, crop, t, pose), torch.zeros(4, 9))
+    assert torch.allclose(net(render, crop, t, pose, surface=surface), torch.zeros(4, 9), atol=1e-6)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
-    loss, _ = disentangled_loss(net(render, crop, t, pose), h_t, h_0, K, torch.randn(4, 50, 3) * 0.3, 64)
+    raw = net(render, crop, t, pose, surface=surface)
+    loss, _ = disentangled_loss(raw, h_t, h_0, K, torch.randn(4, 50, 3) * 0.3, 64)
     loss.backward()
     optimizer.step()
     net.eval()
-    (grad,) = torch.autograd.grad(net(render, crop, t, pose).square().sum(), render)
+    (grad,) = torch.autograd.grad(net(render, crop, t, pose, surface=surface).square().sum(), render)
     assert grad.abs().sum() > 0  # the output depends on the render after one step
 
 
@@ -116,14 +130,14 @@ def test_unknown_design_is_refused():
         Denoiser(NetworkConfig(backbone="resnet18", design="nope"))
 
 
-@pytest.mark.parametrize("design", ["concat-grid", "siamese-grid", "cost-volume"])
+@pytest.mark.parametrize("design", ["concat-grid", "siamese-grid", "cost-volume", "flow-solve"])
 def test_grid_designs_give_nine_outputs_at_any_render_size(design):
     for size in ((64, 48), (128, 96), (320, 240)):
         net = Denoiser(NetworkConfig(backbone="resnet18", render_size=size, design=design)).eval()
         w, h = size
         render, crop = torch.rand(2, 3, h, w), torch.rand(2, 3, h, w)
         pose = pose_features(_poses(2, 3), _crop_K(2), size, 1.5) if net.needs_pose else None
-        assert net(render, crop, torch.tensor([3, 70]), pose).shape == (2, 9)
+        assert net(render, crop, torch.tensor([3, 70]), pose, surface=_surface(size)).shape == (2, 9)
 
 
 @pytest.mark.parametrize("design", DESIGNS)
@@ -139,11 +153,13 @@ def test_every_design_round_trips_through_a_checkpoint(design, tmp_path):
     net.eval()
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
     pose = pose_features(_poses(2, 3), _crop_K(2), (64, 48), 1.5) if net.needs_pose else None
+    surface = _surface((64, 48))
     save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
     loaded, loaded_config = load_model(tmp_path / "m.pt")
     assert loaded_config.network.design == design and loaded.needs_pose == net.needs_pose
     with torch.no_grad():
-        assert torch.allclose(loaded(render, crop, t, pose), net(render, crop, t, pose), atol=1e-6)
+        out, expected = loaded(render, crop, t, pose, surface=surface), net(render, crop, t, pose, surface=surface)
+        assert torch.allclose(out, expected, atol=1e-5) and not torch.allclose(out, torch.zeros_like(out))
 
 
 @pytest.mark.parametrize("rotation_output", ["so3", "abs6d"])
@@ -198,27 +214,17 @@ def test_cost_volume_peaks_at_the_displacement_between_its_inputs():
     assert torch.allclose(inner.max(), torch.tensor(1.0), atol=1e-5)  # normalised features: cosine 1
 
 
-def test_flow_targets_are_the_shift_of_the_robot_between_two_poses():
-    h_t = _poses(3, 8)
-    # A thin slab seen face on (same depth for all points): a sideways move shifts every point alike.
-    points = torch.randn(3, 400, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([0.2, 0.2, 0.0])
-    h_t[:, :3, :3] = torch.eye(3)
-    K = _crop_K(3)
-    flow, mask = flow_targets(h_t, h_t, K, points, (320, 240), (6, 8))
-    assert flow.shape == (3, 2, 6, 8) and mask.any() and torch.equal(flow, torch.zeros_like(flow))
-    h_0 = h_t.clone()
-    h_0[:, 0, 3] += 0.01 * h_t[:, 2, 3]  # 0.01 of the depth along x: fx * 0.01 = 4 px to the right
-    flow, mask = flow_targets(h_t, h_0, K, points, (320, 240), (6, 8))
-    m = mask.expand_as(flow)
-    assert torch.allclose(flow[:, 0][m[:, 0]], torch.tensor(4.0 / 320), atol=1e-5)  # units of the render width
-    assert torch.allclose(flow[:, 1][m[:, 1]], torch.tensor(0.0), atol=1e-5)
-    assert flow_loss(flow, flow, mask) == 0 and flow_loss(torch.zeros_like(flow), flow, mask) > 0
-
-
-def test_only_the_cost_volume_design_returns_a_flow():
+def test_only_the_field_designs_return_a_flow():
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([3, 40])
     net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="cost-volume"))
     raw, flow = net(render, crop, t, with_flow=True)
     assert raw.shape == (2, 9) and flow.shape == (2, 2, 3, 4)
+    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve"))
+    raw, flow = net(render, crop, t, with_flow=True, surface=_surface((64, 48)))
+    assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 2, 6, 8)  # identity at init
+    with pytest.raises(ValueError, match="needs the render's surface"):
+        net(render, crop, t)
     with pytest.raises(ValueError, match="predicts no flow"):
         Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48)))(render, crop, t, with_flow=True)
+    with pytest.raises(ValueError, match="rotation_output='6d'"):
+        Denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", rotation_output="so3"))

@@ -190,7 +190,8 @@ def kuka_shards(tmp_path_factory):
         (["--out", "FILE"], "is a file"),
         (["--t-max", "0"], "--t-max must be at least 1"),
         (["--t-curriculum-steps", "-5"], "--t-curriculum-steps must be at least 0"),
-        (["--flow-weight", "1"], "--flow-weight needs --design cost-volume"),
+        (["--flow-weight", "1"], "--flow-weight needs --design cost-volume or flow-solve"),
+        (["--design", "flow-solve", "--rotation-output", "so3"], "flow-solve solves its rotation from the field"),
         (["--flow-weight", "-1", "--design", "cost-volume"], "--flow-weight must be 0 or more"),
     ],
 )
@@ -255,8 +256,9 @@ def test_every_design_trains_and_estimates(frames, design, rotation_output):
     assert est.poses.shape == (1, 4, 4) and torch.isfinite(torch.from_numpy(est.poses)).all()
 
 
-def test_the_flow_loss_joins_the_cost_volume_designs_training_step(frames):
-    config = with_section(tiny_config(flow_weight=0.5), "network", design="cost-volume")
+@pytest.mark.parametrize("design", ["cost-volume", "flow-solve"])
+def test_the_flow_loss_joins_the_field_designs_training_step(frames, design):
+    config = with_section(tiny_config(flow_weight=0.5), "network", design=design)
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
     model = Denoiser(config.network)
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)

@@ -17,7 +17,7 @@ from monose3.apps.options import (
 from monose3.data import validation as v
 from monose3.data.scenes.profiles import PROFILES
 from monose3.errors import Monose3Error
-from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, TRAIN_PRESET
+from monose3.method.config import DESIGNS, FIELD_DESIGNS, ROTATION_OUTPUTS, TRAIN_PRESET
 from monose3.robot.jobs import RENDERERS
 from monose3.training.formats import check_checkpoint
 
@@ -103,7 +103,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--flow-weight",
         type=float,
-        help="weight of the cost-volume design's auxiliary displacement-field loss [0: off; see docs/DESIGNS.md]",
+        help="weight of the auxiliary displacement-field loss of the designs that predict one "
+        "(cost-volume, flow-solve) [0: off; see docs/DESIGNS.md]",
     )
     p.add_argument("--t-max", type=int, help="curriculum: draw t <= T_MAX (default: T, the paper's U{1..T})")
     p.add_argument(
@@ -153,10 +154,11 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
             raise Monose3Error(f"--{name.replace('_', '-')} must be positive, got {value}")
     if args.flow_weight is not None and not args.flow_weight >= 0:
         raise Monose3Error(f"--flow-weight must be 0 or more, got {args.flow_weight}")
-    if args.flow_weight and args.design != "cost-volume":
-        raise Monose3Error(
-            "--flow-weight needs --design cost-volume, the one design that predicts a displacement field"
-        )
+    if args.flow_weight and args.design not in FIELD_DESIGNS:
+        designs = " or ".join(FIELD_DESIGNS)
+        raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")
+    if args.design == "flow-solve" and args.rotation_output not in (None, "6d"):
+        raise Monose3Error("--design flow-solve solves its rotation from the field; drop --rotation-output")
     for d in args.data:
         v.check_input_dir(d, "--data")
     if args.backgrounds:

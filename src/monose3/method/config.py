@@ -32,7 +32,18 @@ class DiffusionConfig:
 
 
 # The denoiser architectures (method.denoiser): "concat" is the paper's; see docs/DESIGNS.md.
-DESIGNS = ("concat", "siamese", "siamese-corr", "siamese-pose", "concat-grid", "siamese-grid", "cost-volume")
+DESIGNS = (
+    "concat",
+    "siamese",
+    "siamese-corr",
+    "siamese-pose",
+    "concat-grid",
+    "siamese-grid",
+    "cost-volume",
+    "flow-solve",
+)
+# The designs that predict a displacement field (method.flow_pose; TrainConfig.flow_weight trains it).
+FIELD_DESIGNS = ("cost-volume", "flow-solve")
 # How the network's rotation outputs are read: "6d" is the paper's offset of the 6D rotation.
 ROTATION_OUTPUTS = ("6d", "so3", "abs6d")
 

@@ -10,9 +10,10 @@ import torchvision
 from torch import nn
 
 from monose3.geometry.rotations import matrix_to_rotation_6d, rotation_6d_to_matrix, rotvec_to_matrix
-from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, NetworkConfig
+from monose3.method.config import DESIGNS, FIELD_DESIGNS, ROTATION_OUTPUTS, NetworkConfig
+from monose3.method.flow_pose import Surface, pose_from_field
 from monose3.method.pose_space import normalize_pose
-from monose3.method.update import IDENTITY_6D
+from monose3.method.update import IDENTITY_6D, true_update, update_to_raw
 
 NUM_OUTPUTS = 9  # v_xy (2), dR 6D (6), v_z (1)
 
@@ -213,33 +214,60 @@ class CostVolumeNet(nn.Module):
         self.fine = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
         self.coarse = net.layer3
         r_fine, r_coarse = _COST_RADII
-        emb = config.time_embedding_dim
-        self.fine_cost = nn.Sequential(
-            _conv_block((2 * r_fine + 1) ** 2 + 2 + emb, width), _conv_block(width, width, stride=2)
-        )
+        self.fine_cost = _conv_block((2 * r_fine + 1) ** 2 + 2 + config.time_embedding_dim, width)
+        self.down = _conv_block(width, width, stride=2)
         self.coarse_cost = nn.Sequential(
             _conv_block(width + (2 * r_coarse + 1) ** 2 + 2, 2 * width),
             _conv_block(2 * width, 2 * width),
             _conv_block(2 * width, 2 * width),
         )
         self.head = GridHead(2 * width, 0)
-        self.flow = nn.Conv2d(2 * width, 2, 1)  # the auxiliary displacement field (loss.flow_targets)
+        self.flow = nn.Conv2d(2 * width, 2, 1)  # the auxiliary displacement field (flow_pose.field_targets)
 
-    def forward(
-        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The raw outputs ``[B, 9]`` and the predicted displacement field ``[B, 2, h/16, w/16]``."""
+    def compare(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The comparison's features at stride 8 ``[B, width, h/8, w/8]`` and 16 ``[B, 2 width, h/16, w/16]``."""
         b = render.shape[0]
         r_fine, r_coarse = _COST_RADII
         fine = self.fine(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
         coarse = self.coarse(fine)
         h, w = fine.shape[-2:]
         x = [local_correlation(fine[:b], fine[b:], r_fine), coord_channels(b, h, w, fine)]
-        x = self.fine_cost(torch.cat([*x, emb[:, :, None, None].expand(b, -1, h, w)], dim=1))
+        x_fine = self.fine_cost(torch.cat([*x, emb[:, :, None, None].expand(b, -1, h, w)], dim=1))
         h, w = coarse.shape[-2:]
         cost = local_correlation(coarse[:b], coarse[b:], r_coarse)
-        x = self.coarse_cost(torch.cat([x, cost, coord_channels(b, h, w, coarse)], dim=1))
+        x = torch.cat([self.down(x_fine), cost, coord_channels(b, h, w, coarse)], dim=1)
+        return x_fine, self.coarse_cost(x)
+
+    def forward(
+        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The raw outputs ``[B, 9]`` and the predicted displacement field ``[B, 2, h/16, w/16]``."""
+        _, x = self.compare(render, crop, emb)
         return self.head(x), self.flow(x)
+
+
+class FlowSolveNet(CostVolumeNet):
+    """:class:`CostVolumeNet`'s comparison, decoded to a displacement field and a confidence at
+    stride 8 (the coarse features upsampled beside the fine ones); no regression head. The
+    pose comes from the field (:func:`monose3.method.flow_pose.pose_from_field`), so the
+    network can only move the pose by saying where the render's parts are in the crop."""
+
+    def __init__(self, config: NetworkConfig, width: int = 128):
+        super().__init__(config, width)
+        del self.head, self.flow
+        self.decode = _conv_block(3 * width, width)
+        self.field = nn.Conv2d(width, 3, 1)  # (dx, dy) in render widths, confidence logit
+        nn.init.zeros_(self.field.weight)  # zero field, uniform confidence: the identity update at init
+        nn.init.zeros_(self.field.bias)
+
+    def forward(
+        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The displacement field ``[B, 2, h/8, w/8]`` and its confidence in (0, 1) ``[B, 1, h/8, w/8]``."""
+        x_fine, x = self.compare(render, crop, emb)
+        up = nn.functional.interpolate(x, size=x_fine.shape[-2:], mode="bilinear", align_corners=False)
+        field = self.field(self.decode(torch.cat([x_fine, up], dim=1)))
+        return field[:, :2], torch.sigmoid(field[:, 2:])
 
 
 class Denoiser(nn.Module):
@@ -282,6 +310,10 @@ class Denoiser(nn.Module):
             self.net: nn.Module = net
         elif config.design == "cost-volume":
             self.net = CostVolumeNet(config)
+        elif config.design == "flow-solve":
+            if config.rotation_output != "6d":
+                raise ValueError("the flow-solve design solves its rotation from the field; use rotation_output='6d'")
+            self.net = FlowSolveNet(config)
         else:
             self.net = SiameseNet(
                 config,
@@ -297,8 +329,13 @@ class Denoiser(nn.Module):
 
     @property
     def predicts_flow(self) -> bool:
-        """Whether :meth:`forward` can also return the displacement field (``cost-volume``)."""
-        return self.config.design == "cost-volume"
+        """Whether :meth:`forward` can also return a displacement field (``cost-volume``, ``flow-solve``)."""
+        return self.config.design in FIELD_DESIGNS
+
+    @property
+    def needs_surface(self) -> bool:
+        """Whether :meth:`forward` needs ``surface`` (the render's visible surface, flow_pose.render_surface)."""
+        return self.config.design == "flow-solve"
 
     def forward(
         self,
@@ -307,16 +344,20 @@ class Denoiser(nn.Module):
         t: torch.Tensor,
         pose: torch.Tensor | None = None,
         with_flow: bool = False,
+        surface: Surface | None = None,
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """``render``, ``crop``: ``[B, 3, h, w]`` in [0, 1]; ``t``: ``[B]`` steps; ``pose``:
-        ``[B, 10]`` from :func:`pose_features` (only read by ``siamese-pose``). Returns ``[B, 9]``,
-        and with ``with_flow`` (``cost-volume`` only) also the predicted displacement field
-        ``[B, 2, h/16, w/16]`` for :func:`monose3.method.loss.flow_loss`."""
+        ``[B, 10]`` from :func:`pose_features` (read by ``siamese-pose`` and ``abs6d``);
+        ``surface``: the render's visible surface (:func:`~monose3.method.flow_pose.render_surface`,
+        needed by ``flow-solve``). Returns ``[B, 9]``, and with ``with_flow`` (:data:`FIELD_DESIGNS`)
+        also the predicted displacement field ``[B, 2, h', w']`` for :func:`monose3.method.loss.flow_loss`."""
         if with_flow and not self.predicts_flow:
-            raise ValueError(f"the {self.config.design!r} denoiser predicts no flow; the cost-volume design does")
+            raise ValueError(f"the {self.config.design!r} denoiser predicts no flow; {FIELD_DESIGNS} do")
         emb = timestep_embedding(t, self.config.time_embedding_dim).to(render.dtype)
         flow = None
-        if self.predicts_flow:
+        if self.config.design == "flow-solve":
+            raw, flow = self.solve(render, crop, emb, surface)
+        elif self.predicts_flow:
             raw, flow = self.net(render, crop, emb, pose)
         elif self.config.design not in ("concat", "concat-grid"):
             raw = self.net(render, crop, emb, pose)
@@ -328,6 +369,17 @@ class Denoiser(nn.Module):
             raw = self.net(torch.cat(x, dim=1))
         raw = self.read_rotation(raw, pose)
         return (raw, flow) if with_flow else raw
+
+    def solve(
+        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``flow-solve``: the field and the raw outputs of the update to the pose it implies."""
+        if surface is None:
+            raise ValueError("the flow-solve denoiser needs the render's surface (method.flow_pose.render_surface)")
+        field, confidence = self.net(render, crop, emb)
+        size = self.config.render_size
+        pose_0 = pose_from_field(field.float(), confidence.float(), surface, size)
+        return update_to_raw(*true_update(surface.pose_ref_t, pose_0, surface.K_crop), size[0]).to(field.dtype), field
 
     def read_rotation(self, raw: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:
         """The raw outputs in the 6D layout of :func:`raw_to_update`, whatever ``rotation_output``."""

@@ -19,6 +19,7 @@ from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser, pose_input
+from monose3.method.flow_pose import render_surface
 from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
 from monose3.method.scheduler import DDIMScheduler
@@ -130,13 +131,15 @@ class PoseEstimator:
             boxes, K_crop = crop_geometry(pose_ref, batch.points_ref, batch.K, net.render_size)
         with self.timed("render"):
             pose_base = base_frame(pose_ref, batch.centroid).to(self.device)
-            renders = self.renderer.render(batch.joints, pose_base, K_crop.to(self.device), net.render_size).rgb
+            rendered = self.renderer.render(batch.joints, pose_base, K_crop.to(self.device), net.render_size)
         with self.timed("crop"):
             crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
         with self.timed("network"):
             steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
-            pose = pose_input(net, pose_ref.to(self.device), K_crop.to(self.device), self.config.diffusion.c_z)
-            raw = self.model(renders.to(self.device), crops.to(self.device), steps, pose).double().cpu()
+            pose_t, K_t = pose_ref.to(self.device), K_crop.to(self.device)
+            pose = pose_input(net, pose_t, K_t, self.config.diffusion.c_z)
+            surface = render_surface(rendered.depth, pose_t.float(), K_t.float()) if self.model.needs_surface else None
+            raw = self.model(rendered.rgb, crops.to(self.device), steps, pose, surface=surface).double().cpu()
         with self.timed("update"):
             v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
             return apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)

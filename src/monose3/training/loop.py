@@ -24,7 +24,8 @@ from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser, pose_input
-from monose3.method.loss import disentangled_loss, flow_loss, flow_targets
+from monose3.method.flow_pose import field_targets, render_surface
+from monose3.method.loss import disentangled_loss, flow_loss
 from monose3.method.scheduler import make_noiser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
@@ -97,15 +98,17 @@ def train_step(
     for group in optimizer.param_groups:
         group["lr"] = lr
     pose = pose_input(config.network, batch["pose_ref_t"], batch["K_crop"], config.diffusion.c_z)
+    surface = render_surface(batch["depth"], batch["pose_ref_t"], batch["K_crop"])
     with_flow = config.train.flow_weight > 0
     with amp():
-        out = model(batch["render"], batch["crop"], batch["t"], pose, with_flow=with_flow)
+        out = model(batch["render"], batch["crop"], batch["t"], pose, with_flow=with_flow, surface=surface)
     raw, flow = out if with_flow else (out, None)
     poses = (batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"])
     _, parts = disentangled_loss(raw.float(), *poses, config.network.render_size[0])
     loss = parts["xy"] + config.train.rot_weight * parts["rot"] + parts["z"]
     if with_flow:
-        parts["flow"] = flow_loss(flow.float(), *flow_targets(*poses, config.network.render_size, flow.shape[-2:]))
+        targets = field_targets(surface, batch["pose_ref_0"], config.network.render_size, flow.shape[-2:])
+        parts["flow"] = flow_loss(flow.float(), *targets)
         loss = loss + config.train.flow_weight * parts["flow"]
     optimizer.zero_grad(set_to_none=True)
     loss.backward()

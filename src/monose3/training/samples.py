@@ -118,9 +118,10 @@ def denoising_batch(
     device = crops.device
     size = (crops.shape[-1], crops.shape[-2])
     pose_t = base_frame(views.pose_ref_t, views.centroid).to(device)
-    render = renderer.render(joints, pose_t, views.K_crop.to(device), size).rgb
+    render = renderer.render(joints, pose_t, views.K_crop.to(device), size)
     return {
-        "render": render,
+        "render": render.rgb,
+        "depth": render.depth,
         "crop": crops,
         "t": views.t.to(device),
         "pose_ref_t": views.pose_ref_t.float().to(device),
