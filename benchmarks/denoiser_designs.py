@@ -277,6 +277,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         "train_t_max": args.train_t_max,
         "xyz_weight": args.xyz_weight,
         "flow_weight": args.flow_weight,
+        "crop_jitter": args.crop_jitter,
     }
     recipe["pool"] = len(train["t"])
     name = design + (f" [{args.tag}]" if args.tag else "")
@@ -451,6 +452,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--lr", type=float, help="Adam learning rate after warm-up [the preset's, 3e-4]")
     p.add_argument("--train-t-max", type=int, help="train on samples with t <= this only")
+    p.add_argument(
+        "--crop-jitter", type=float, default=0.0, help="TrainConfig.crop_jitter of the training pool (held-out: 0)"
+    )
     p.add_argument("--tag", default="", help="recipe name, added to the design's name and its result file")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1)
@@ -471,11 +475,9 @@ def main(argv: list[str] | None = None) -> int:
         pools = pools / args.sanity
         args.train_data = args.held_data = "synthetic"
     held = load_pool(pools / "held.npz", args.held_data, config, args.held_size, 1, args.sanity)
-    train = (
-        load_pool(pools / "train.npz", args.train_data, config, args.pool_size, 0, args.sanity)
-        if args.designs
-        else None
-    )
+    jittered = with_section(config, "train", crop_jitter=args.crop_jitter)
+    name = f"train_jitter{args.crop_jitter:g}.npz" if args.crop_jitter else "train.npz"
+    train = load_pool(pools / name, args.train_data, jittered, args.pool_size, 0, args.sanity) if args.designs else None
     out.mkdir(parents=True, exist_ok=True)
     identity = bucket_means(evaluate(None, held, config), held["t"].numpy())
     (out / "identity.json").write_text(json.dumps(identity, indent=1))

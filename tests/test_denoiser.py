@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -221,10 +223,26 @@ def test_only_the_field_designs_return_a_flow():
     assert raw.shape == (2, 9) and flow.shape == (2, 2, 3, 4)
     net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve"))
     raw, flow = net(render, crop, t, with_flow=True, surface=_surface((64, 48)))
-    assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 2, 6, 8)  # identity at init
+    assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 3, 6, 8)  # identity at init
     with pytest.raises(ValueError, match="needs the render's surface"):
         net(render, crop, t)
     with pytest.raises(ValueError, match="predicts no flow"):
         Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48)))(render, crop, t, with_flow=True)
     with pytest.raises(ValueError, match="rotation_output='6d'"):
         Denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", rotation_output="so3"))
+
+
+def test_a_field_with_a_scale_channel_is_judged_by_the_laplace_likelihood():
+    from monose3.method.loss import flow_errors, flow_loss
+
+    target, mask = torch.full((1, 2, 3, 4), 0.05), torch.ones(1, 1, 3, 4, dtype=torch.bool)
+    mask[..., 0] = False  # cells without robot do not count
+    field = torch.zeros(1, 3, 3, 4)
+    assert flow_loss(field[:, :2], target, mask) == pytest.approx(0.05)  # two channels: L1
+    losses = []
+    for scale in (0.01, 0.05, 0.2):
+        field[:, 2] = math.log(scale)
+        losses.append(flow_loss(field, target, mask).item())
+        assert losses[-1] == pytest.approx(0.05 / scale + math.log(scale), rel=1e-5)
+    assert losses[1] < min(losses[0], losses[2])  # the likelihood is best where the scale is the error
+    assert torch.allclose(flow_errors(field, target, mask), torch.tensor([0.05]))  # judged on the field alone

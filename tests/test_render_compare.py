@@ -44,3 +44,16 @@ def test_crop_intrinsics_agree_with_the_image_crop():
     dot = torch.tensor([[[(u - cx) / fx, (v - cy) / fx, 1.0]]], dtype=torch.float64)  # the dot's ray
     expected = project(dot, K_crop)[0, 0]
     assert abs(peak[1] - float(expected[0])) <= 1.0 and abs(peak[0] - float(expected[1])) <= 1.0
+
+
+def test_a_shifted_crop_moves_by_its_fraction_of_the_box_and_its_intrinsics_follow():
+    pose, points, K = scene()
+    boxes, K_crop = crop_geometry(pose, points, K, RENDER)
+    shift = torch.tensor([[0.1, -0.05]], dtype=torch.float64)
+    moved, K_moved = crop_geometry(pose, points, K, RENDER, shift)
+    size = boxes[:, 2:] - boxes[:, :2]
+    torch.testing.assert_close(moved, boxes + (shift * size).repeat(1, 2))
+    cam = transform_points(pose, points)
+    # every point lands 10 % of the render width to the left and 5 % of its height lower
+    offset = project(cam, K_moved) - project(cam, K_crop)
+    torch.testing.assert_close(offset, (-shift * torch.tensor(RENDER)).expand_as(offset).to(offset))

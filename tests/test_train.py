@@ -18,7 +18,7 @@ from monose3.apps.cli import main
 from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, get_preset, with_section
-from monose3.method.denoiser import Denoiser
+from monose3.method.denoiser import INITIAL_FIELD_SCALE, Denoiser
 from monose3.training.checkpoints import read_checkpoint
 from monose3.training.loop import BatchMaker, Sources, learning_rate, train, train_step
 from monose3.training.samples import GlobalSampleSampler
@@ -262,7 +262,8 @@ def test_the_flow_loss_joins_the_field_designs_training_step(frames, design):
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
     model = Denoiser(config.network)
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
-    assert parts["flow"] > 0  # the forward process moves the robot, so the field is not zero
+    # the forward process moves the robot, so the field is not zero (flow-solve: Laplace NLL, b at init)
+    assert parts["flow"] > (math.log(INITIAL_FIELD_SCALE) if design == "flow-solve" else 0.0)
     assert loss == pytest.approx(parts["xy"] + parts["rot"] + parts["z"] + 0.5 * parts["flow"], rel=1e-5)
     from monose3.training.logs import window_means
 
@@ -280,3 +281,17 @@ def test_t_curriculum_caps_and_then_widens_the_drawn_timesteps(frames):
     maker = BatchMaker(fixed, Sources(frames), torch.device("cpu"), 0, 0, 1)
     drawn = torch.cat([maker.batch(step)[1]["t"] for step in range(3)])
     assert drawn.min() >= 1 and drawn.max() <= 10
+
+
+def test_crop_jitter_moves_the_crop_off_h_t_and_the_render_with_it(frames):
+    from monose3.geometry.camera import project
+
+    def centre_offsets(jitter: float) -> torch.Tensor:
+        config = tiny_config(batch_size=8, crop_jitter=jitter)
+        _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
+        uv = project(batch["pose_ref_t"][:, None, :3, 3], batch["K_crop"])[:, 0]  # H_t's centroid in the crop
+        return (uv + 0.5) / torch.tensor(TINY_NET.render_size) - 0.5  # fraction of the crop, from its centre
+
+    assert centre_offsets(0.0).abs().max() < 1e-4  # RoboPose's rule: centred on H_t
+    moved = centre_offsets(0.1)
+    assert moved.abs().max() <= 0.1 + 1e-4 and moved.abs().mean() > 0.02

@@ -83,6 +83,11 @@ class TrainConfig:
     # Weight of the cost-volume design's auxiliary loss (method.loss.flow_targets; not in the
     # paper): where each part of the robot moves between render and crop, per cell.
     flow_weight: float = 0.0
+    # Crop jitter (not in the paper): each training crop moves by up to this fraction of its
+    # size, uniformly in x and y, with the render (same crop intrinsics). Centred on H_t, the
+    # robot's offset in the crop *is* v_xy, so a network can read xy off the crop alone and
+    # never compare; moved at random, the offset says nothing without the render. 0: RoboPose's rule.
+    crop_jitter: float = 0.0
     checkpoint_every: int = 500
     log_every: int = 20
     num_workers: int = 4

@@ -33,6 +33,7 @@ _CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (str
 # "cost-volume": radii of its two cost volumes, at strides 8 and 16; 4 and 3 cells reach +-32
 # and +-48 px of a 128x96 crop, the render-crop offsets of t <= ~30.
 _COST_RADII = (4, 3)
+INITIAL_FIELD_SCALE = 0.02  # flow-solve: the field's Laplace scale at init (render widths, ~ t 1-10's moves)
 
 
 def _resnet(backbone: str) -> torchvision.models.ResNet:
@@ -247,27 +248,27 @@ class CostVolumeNet(nn.Module):
 
 
 class FlowSolveNet(CostVolumeNet):
-    """:class:`CostVolumeNet`'s comparison, decoded to a displacement field and a confidence at
-    stride 8 (the coarse features upsampled beside the fine ones); no regression head. The
-    pose comes from the field (:func:`monose3.method.flow_pose.pose_from_field`), so the
+    """:class:`CostVolumeNet`'s comparison, decoded at stride 8 (the coarse features upsampled
+    beside the fine ones) to a displacement field and its uncertainty; no regression head.
+    The pose comes from the field (:func:`monose3.method.flow_pose.pose_from_field`), so the
     network can only move the pose by saying where the render's parts are in the crop."""
 
     def __init__(self, config: NetworkConfig, width: int = 128):
         super().__init__(config, width)
         del self.head, self.flow
         self.decode = _conv_block(3 * width, width)
-        self.field = nn.Conv2d(width, 3, 1)  # (dx, dy) in render widths, confidence logit
-        nn.init.zeros_(self.field.weight)  # zero field, uniform confidence: the identity update at init
+        self.field = nn.Conv2d(width, 3, 1)  # (dx, dy) in render widths, log of the Laplace scale
+        nn.init.zeros_(self.field.weight)  # zero field, uniform scale: the identity update at init
         nn.init.zeros_(self.field.bias)
+        nn.init.constant_(self.field.bias[2:], math.log(INITIAL_FIELD_SCALE))
 
     def forward(
         self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The displacement field ``[B, 2, h/8, w/8]`` and its confidence in (0, 1) ``[B, 1, h/8, w/8]``."""
+    ) -> torch.Tensor:
+        """The displacement field and the log of its Laplace scale per cell, ``[B, 3, h/8, w/8]``."""
         x_fine, x = self.compare(render, crop, emb)
         up = nn.functional.interpolate(x, size=x_fine.shape[-2:], mode="bilinear", align_corners=False)
-        field = self.field(self.decode(torch.cat([x_fine, up], dim=1)))
-        return field[:, :2], torch.sigmoid(field[:, 2:])
+        return self.field(self.decode(torch.cat([x_fine, up], dim=1)))
 
 
 class Denoiser(nn.Module):
@@ -350,7 +351,8 @@ class Denoiser(nn.Module):
         ``[B, 10]`` from :func:`pose_features` (read by ``siamese-pose`` and ``abs6d``);
         ``surface``: the render's visible surface (:func:`~monose3.method.flow_pose.render_surface`,
         needed by ``flow-solve``). Returns ``[B, 9]``, and with ``with_flow`` (:data:`FIELD_DESIGNS`)
-        also the predicted displacement field ``[B, 2, h', w']`` for :func:`monose3.method.loss.flow_loss`."""
+        also the predicted displacement field ``[B, 2, h', w']`` (``flow-solve``: ``[B, 3, h', w']``,
+        with the log of its Laplace scale) for :func:`monose3.method.loss.flow_loss`."""
         if with_flow and not self.predicts_flow:
             raise ValueError(f"the {self.config.design!r} denoiser predicts no flow; {FIELD_DESIGNS} do")
         emb = timestep_embedding(t, self.config.time_embedding_dim).to(render.dtype)
@@ -373,12 +375,15 @@ class Denoiser(nn.Module):
     def solve(
         self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``flow-solve``: the field and the raw outputs of the update to the pose it implies."""
+        """``flow-solve``: the raw outputs of the update to the pose its field implies, and the
+        field with its log-scale ``[B, 3, h/8, w/8]``. Each cell counts in the solve by its
+        precision (1 / scale^2): the cells the network is unsure of hardly move the pose."""
         if surface is None:
             raise ValueError("the flow-solve denoiser needs the render's surface (method.flow_pose.render_surface)")
-        field, confidence = self.net(render, crop, emb)
+        field = self.net(render, crop, emb)
+        precision = torch.exp(-2.0 * (field[:, 2:].float() - math.log(INITIAL_FIELD_SCALE)))
         size = self.config.render_size
-        pose_0 = pose_from_field(field.float(), confidence.float(), surface, size)
+        pose_0 = pose_from_field(field[:, :2].float(), precision, surface, size)
         return update_to_raw(*true_update(surface.pose_ref_t, pose_0, surface.K_crop), size[0]).to(field.dtype), field
 
     def read_rotation(self, raw: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:

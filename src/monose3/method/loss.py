@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import torch
 
-from monose3.geometry.camera import project
 from monose3.geometry.poses import transform_points
 from monose3.method.update import apply_update, raw_to_update, true_update
 
@@ -51,47 +50,20 @@ def disentangled_loss(
     return parts["xy"] + parts["rot"] + parts["z"], parts
 
 
-def flow_targets(
-    pose_ref_t: torch.Tensor,
-    pose_ref_0: torch.Tensor,
-    K_crop: torch.Tensor,
-    points_ref: torch.Tensor,
-    render_size: tuple[int, int],
-    cells: tuple[int, int],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The auxiliary target of the ``cost-volume`` design (not in the paper): where the robot's
-    surface moves in the crop from H_t to H_0, per cell of a ``cells`` = (h, w) grid.
-
-    Each model point is projected under H_t (where the render shows it) and under H_0 (where
-    the crop shows it); a cell's target is the mean displacement of the points that H_t puts
-    in it, in units of the render width. Returns ``flow [B, 2, h, w]`` and the cells that hold
-    any point, ``mask [B, 1, h, w]``. Eq. 10 gives the network 9 numbers to learn from per
-    sample; this gives it a displacement field, which a cost volume reads locally."""
-    (width, height), (h, w) = render_size, cells
-    uv_t = project(transform_points(pose_ref_t, points_ref), K_crop)
-    uv_0 = project(transform_points(pose_ref_0, points_ref), K_crop)
-    col = (uv_t[..., 0] * w / width).floor().long()
-    row = (uv_t[..., 1] * h / height).floor().long()
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    b = len(points_ref)
-    index = (torch.arange(b, device=row.device)[:, None] * h + row) * w + col
-    index = torch.where(inside, index, b * h * w)  # one spare bin for points outside the crop
-    shift = ((uv_0 - uv_t) / width).reshape(-1, 2)
-    sums = torch.zeros(b * h * w + 1, 2, dtype=shift.dtype, device=shift.device)
-    sums.index_add_(0, index.reshape(-1), shift)
-    counts = torch.zeros(b * h * w + 1, dtype=shift.dtype, device=shift.device)
-    counts.index_add_(0, index.reshape(-1), torch.ones_like(shift[:, 0]))
-    flow = (sums[:-1] / counts[:-1, None].clamp(min=1)).reshape(b, h, w, 2).permute(0, 3, 1, 2)
-    return flow, (counts[:-1] > 0).reshape(b, 1, h, w)
-
-
 def flow_loss(flow: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean L1 error of a predicted displacement field ``[B, 2, h, w]`` over the cells in ``mask``."""
+    """Mean error of a predicted displacement field ``[B, 2, h, w]`` over the cells in ``mask``
+    ``[B, 1, h, w]``: L1, or, when ``flow`` has a third channel (log of a Laplace scale b per
+    cell, ``flow-solve``), the Laplace negative log-likelihood |f - f*| / b + log b, which
+    teaches the network how far each cell of its field can be trusted."""
     mask = mask.to(flow.dtype)
-    return ((flow - target).abs() * mask).sum() / (2 * mask.sum()).clamp(min=1)
+    error = (flow[:, :2] - target).abs()
+    if flow.shape[1] == 3:
+        log_scale = flow[:, 2:]
+        error = error * torch.exp(-log_scale) + log_scale
+    return (error * mask).sum() / (2 * mask.sum()).clamp(min=1)
 
 
 def flow_errors(flow: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """:func:`flow_loss` of each sample alone, ``[B]`` (for judging, not training)."""
+    """Mean L1 error of each sample's displacement field (its first two channels), ``[B]`` (for judging)."""
     mask = mask.to(flow.dtype)
-    return ((flow - target).abs() * mask).sum((1, 2, 3)) / (2 * mask.sum((1, 2, 3))).clamp(min=1)
+    return ((flow[:, :2] - target).abs() * mask).sum((1, 2, 3)) / (2 * mask.sum((1, 2, 3))).clamp(min=1)

@@ -16,12 +16,17 @@ NEAR_CLIP = 0.05
 
 
 def crop_geometry(
-    pose_ref: torch.Tensor, points_ref: torch.Tensor, K: torch.Tensor, render_size: tuple[int, int]
+    pose_ref: torch.Tensor,
+    points_ref: torch.Tensor,
+    K: torch.Tensor,
+    render_size: tuple[int, int],
+    shift: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Crop boxes ``[B, 4]`` and crop intrinsics ``[B, 3, 3]`` for the robot at ``pose_ref``.
 
     ``pose_ref`` is camera-from-centroid and ``points_ref`` the model points in the centroid
-    frame, so the crop is centred on the reference point's projection (RoboPose's rule).
+    frame, so the crop is centred on the reference point's projection (RoboPose's rule);
+    ``shift`` ``[B, 2]`` moves each box by that fraction of its size (training's crop jitter).
     """
     cam_points = transform_points(pose_ref, points_ref)
     cam_points = torch.cat([cam_points[..., :2], cam_points[..., 2:].clamp_min(NEAR_CLIP)], -1)
@@ -30,6 +35,8 @@ def crop_geometry(
     uv = project(cam_points, K)
     uv_center = project(center, K)[:, 0]
     boxes = crop_boxes(uv, uv_center, render_size[0] / render_size[1])
+    if shift is not None:
+        boxes = boxes + (shift.to(boxes) * (boxes[:, 2:] - boxes[:, :2])).repeat(1, 2)
     return boxes, crop_intrinsics(K, boxes, render_size)
 
 

@@ -97,7 +97,7 @@ def noisy_views(
     t_max: int | None = None,
 ) -> NoisyViews:
     """Draw t ~ U{1..t_max} (default T) and H_t ~ q(H_t | H_0) (Sec. III-B) for camera-from-base
-    ``pose`` ``[B, 4, 4]``."""
+    ``pose`` ``[B, 4, 4]``, and the crop around H_t (moved by ``TrainConfig.crop_jitter``)."""
     net = config.network
     n = len(pose)
     points = torch.from_numpy(robot.surface_points(joints))
@@ -107,7 +107,9 @@ def noisy_views(
     pose_ref_0 = centroid_frame(pose.double(), centroid)
     t = torch.randint(1, (t_max or config.diffusion.num_steps) + 1, (n,), generator=generator)
     pose_ref_t = noiser.add_noise(pose_ref_0, t, K.double(), size, generator)
-    boxes, K_crop = crop_geometry(pose_ref_t, points_ref, K.double(), net.render_size)
+    jitter = config.train.crop_jitter
+    shift = (torch.rand(n, 2, generator=generator, dtype=torch.float64) * 2 - 1) * jitter if jitter else None
+    boxes, K_crop = crop_geometry(pose_ref_t, points_ref, K.double(), net.render_size, shift)
     return NoisyViews(t, pose_ref_0, pose_ref_t, centroid, points_ref, boxes, K_crop)
 
 
