@@ -192,6 +192,7 @@ def kuka_shards(tmp_path_factory):
         (["--t-curriculum-steps", "-5"], "--t-curriculum-steps must be at least 0"),
         (["--flow-weight", "1"], "--flow-weight needs --design cost-volume or flow-solve"),
         (["--design", "flow-solve", "--rotation-output", "so3"], "flow-solve solves its rotation from the field"),
+        (["--crop-jitter", "0.3"], "--crop-jitter must lie in [0, 0.14]"),
         (["--flow-weight", "-1", "--design", "cost-volume"], "--flow-weight must be 0 or more"),
     ],
 )

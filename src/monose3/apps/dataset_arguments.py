@@ -17,7 +17,7 @@ from monose3.apps.options import (
 from monose3.data import validation as v
 from monose3.data.scenes.profiles import PROFILES
 from monose3.errors import Monose3Error
-from monose3.method.config import DESIGNS, FIELD_DESIGNS, ROTATION_OUTPUTS, TRAIN_PRESET
+from monose3.method.config import DESIGNS, FIELD_DESIGNS, MAX_CROP_JITTER, ROTATION_OUTPUTS, TRAIN_PRESET
 from monose3.robot.jobs import RENDERERS
 from monose3.training.formats import check_checkpoint
 
@@ -106,6 +106,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         help="weight of the auxiliary displacement-field loss of the designs that predict one "
         "(cost-volume, flow-solve) [0: off; see docs/DESIGNS.md]",
     )
+    p.add_argument(
+        "--crop-jitter",
+        type=float,
+        help="move each training crop off H_t by up to this fraction of its size [0: RoboPose's rule; docs/DESIGNS.md]",
+    )
     p.add_argument("--t-max", type=int, help="curriculum: draw t <= T_MAX (default: T, the paper's U{1..T})")
     p.add_argument(
         "--t-curriculum-steps", type=int, help="raise --t-max linearly to T over this many steps [0: keep it]"
@@ -154,6 +159,11 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
             raise Monose3Error(f"--{name.replace('_', '-')} must be positive, got {value}")
     if args.flow_weight is not None and not args.flow_weight >= 0:
         raise Monose3Error(f"--flow-weight must be 0 or more, got {args.flow_weight}")
+    if args.crop_jitter is not None and not 0.0 <= args.crop_jitter <= MAX_CROP_JITTER:
+        raise Monose3Error(
+            f"--crop-jitter must lie in [0, {MAX_CROP_JITTER}] (a fraction of the crop; more cuts the robot off), "
+            f"got {args.crop_jitter}"
+        )
     if args.flow_weight and args.design not in FIELD_DESIGNS:
         designs = " or ".join(FIELD_DESIGNS)
         raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")

@@ -24,6 +24,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
         "t_max": args.t_max,
         "t_curriculum_steps": args.t_curriculum_steps,
         "flow_weight": args.flow_weight,
+        "crop_jitter": args.crop_jitter,
     }
     if args.minutes is not None and args.steps is None:
         train_over["max_steps"] = 10**12  # the clock decides

@@ -44,6 +44,9 @@ DESIGNS = (
 )
 # The designs that predict a displacement field (method.flow_pose; TrainConfig.flow_weight trains it).
 FIELD_DESIGNS = ("cost-volume", "flow-solve")
+# The crop leaves the robot a margin of (1 - 1 / 1.4) / 2 = 14 % of its size on each side
+# (RoboPose's 1.4); moved by more, the crop cuts the robot off.
+MAX_CROP_JITTER = 0.14
 # How the network's rotation outputs are read: "6d" is the paper's offset of the 6D rotation.
 ROTATION_OUTPUTS = ("6d", "so3", "abs6d")
 
