@@ -221,7 +221,9 @@ def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[
 
 def train_design(design: str, config: Config, train: Pool, held: Pool, args: argparse.Namespace) -> dict:
     """Train one design for ``args.samples`` samples, evaluating ``args.evals`` times; ablate at the end."""
-    config = with_section(config, "network", design=design, rotation_output=args.rotation_output)
+    config = with_section(
+        config, "network", design=design, rotation_output=args.rotation_output, field_stride=args.field_stride
+    )
     if args.lr is not None:
         config = with_section(config, "train", lr=args.lr)
     torch.manual_seed(args.seed)
@@ -278,6 +280,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         "xyz_weight": args.xyz_weight,
         "flow_weight": args.flow_weight,
         "crop_jitter": args.crop_jitter,
+        "field_stride": args.field_stride,
     }
     recipe["pool"] = len(train["t"])
     name = design + (f" [{args.tag}]" if args.tag else "")
@@ -450,6 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--flow-weight", type=float, default=0.0, help="weight of the cost-volume design's auxiliary flow loss"
     )
+    p.add_argument("--field-stride", type=int, default=8, help="NetworkConfig.field_stride (flow-solve) [8]")
     p.add_argument("--lr", type=float, help="Adam learning rate after warm-up [the preset's, 3e-4]")
     p.add_argument("--train-t-max", type=int, help="train on samples with t <= this only")
     p.add_argument(

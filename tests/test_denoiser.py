@@ -226,6 +226,11 @@ def test_only_the_field_designs_return_a_flow():
     assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 3, 6, 8)  # identity at init
     with pytest.raises(ValueError, match="needs the render's surface"):
         net(render, crop, t)
+    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve", field_stride=4))
+    raw, flow = net(render, crop, t, with_flow=True, surface=_surface((64, 48)))
+    assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 3, 12, 16)
+    with pytest.raises(ValueError, match="field_stride must be one of"):
+        Denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", field_stride=2))
     with pytest.raises(ValueError, match="predicts no flow"):
         Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48)))(render, crop, t, with_flow=True)
     with pytest.raises(ValueError, match="rotation_output='6d'"):

@@ -193,6 +193,7 @@ def kuka_shards(tmp_path_factory):
         (["--flow-weight", "1"], "--flow-weight needs --design cost-volume or flow-solve"),
         (["--design", "flow-solve", "--rotation-output", "so3"], "flow-solve solves its rotation from the field"),
         (["--crop-jitter", "0.3"], "--crop-jitter must lie in [0, 0.14]"),
+        (["--field-stride", "4"], "--field-stride sets the flow-solve design's field"),
         (["--flow-weight", "-1", "--design", "cost-volume"], "--flow-weight must be 0 or more"),
     ],
 )

@@ -17,7 +17,7 @@ from monose3.apps.options import (
 from monose3.data import validation as v
 from monose3.data.scenes.profiles import PROFILES
 from monose3.errors import Monose3Error
-from monose3.method.config import DESIGNS, FIELD_DESIGNS, MAX_CROP_JITTER, ROTATION_OUTPUTS, TRAIN_PRESET
+from monose3.method.config import DESIGNS, FIELD_DESIGNS, FIELD_STRIDES, MAX_CROP_JITTER, ROTATION_OUTPUTS, TRAIN_PRESET
 from monose3.robot.jobs import RENDERERS
 from monose3.training.formats import check_checkpoint
 
@@ -99,6 +99,12 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         choices=list(ROTATION_OUTPUTS),
         help="how the denoiser's rotation outputs are read (default 6d, the paper's; see docs/DESIGNS.md)",
     )
+    p.add_argument(
+        "--field-stride",
+        type=int,
+        choices=list(FIELD_STRIDES),
+        help="crop pixels per cell of the flow-solve design's displacement field [8]",
+    )
     p.add_argument("--rot-weight", type=float, help="weight of Eq. 10's rotation part in the loss [1]")
     p.add_argument(
         "--flow-weight",
@@ -167,6 +173,8 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     if args.flow_weight and args.design not in FIELD_DESIGNS:
         designs = " or ".join(FIELD_DESIGNS)
         raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")
+    if args.field_stride is not None and args.design != "flow-solve":
+        raise Monose3Error("--field-stride sets the flow-solve design's field; pass --design flow-solve")
     if args.design == "flow-solve" and args.rotation_output not in (None, "6d"):
         raise Monose3Error("--design flow-solve solves its rotation from the field; drop --rotation-output")
     for d in args.data:

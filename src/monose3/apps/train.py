@@ -31,8 +31,9 @@ def config_from_args(args: argparse.Namespace) -> Config:
     config = with_section(config, "train", **{k: v for k, v in train_over.items() if v is not None})
     if args.design:
         config = with_section(config, "network", design=args.design)
-    if getattr(args, "rotation_output", None):
-        config = with_section(config, "network", rotation_output=args.rotation_output)
+    for name in ("rotation_output", "field_stride"):
+        if getattr(args, name, None):
+            config = with_section(config, "network", **{name: getattr(args, name)})
     diff_over = {"noise": args.noise, "gamma": args.gamma}
     return with_section(config, "diffusion", **{k: v for k, v in diff_over.items() if v is not None})
 

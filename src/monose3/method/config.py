@@ -44,6 +44,7 @@ DESIGNS = (
 )
 # The designs that predict a displacement field (method.flow_pose; TrainConfig.flow_weight trains it).
 FIELD_DESIGNS = ("cost-volume", "flow-solve")
+FIELD_STRIDES = (4, 8)
 # The crop leaves the robot a margin of (1 - 1 / 1.4) / 2 = 14 % of its size on each side
 # (RoboPose's 1.4); moved by more, the crop cuts the robot off.
 MAX_CROP_JITTER = 0.14
@@ -65,6 +66,8 @@ class NetworkConfig:
     # layout inside the network, so no output direction leaves dR unchanged (network.so3_raw).
     # "abs6d": an offset of the absolute 6D rotation, R_0 = GS(6D(R_t) + raw) (network.abs6d_raw).
     rotation_output: str = "6d"
+    # flow-solve: the stride (crop pixels per cell) of its displacement field, 8 or 4 (FIELD_STRIDES).
+    field_stride: int = 8
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ import torchvision
 from torch import nn
 
 from monose3.geometry.rotations import matrix_to_rotation_6d, rotation_6d_to_matrix, rotvec_to_matrix
-from monose3.method.config import DESIGNS, FIELD_DESIGNS, ROTATION_OUTPUTS, NetworkConfig
+from monose3.method.config import DESIGNS, FIELD_DESIGNS, FIELD_STRIDES, ROTATION_OUTPUTS, NetworkConfig
 from monose3.method.flow_pose import Surface, pose_from_field
 from monose3.method.pose_space import normalize_pose
 from monose3.method.update import IDENTITY_6D, true_update, update_to_raw
@@ -33,6 +33,7 @@ _CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (str
 # "cost-volume": radii of its two cost volumes, at strides 8 and 16; 4 and 3 cells reach +-32
 # and +-48 px of a 128x96 crop, the render-crop offsets of t <= ~30.
 _COST_RADII = (4, 3)
+_FINEST_RADIUS = 3  # flow-solve at field_stride 4: its stride-4 cost volume reaches +-12 px
 INITIAL_FIELD_SCALE = 0.02  # flow-solve: the field's Laplace scale at init (render widths, ~ t 1-10's moves)
 
 
@@ -225,11 +226,10 @@ class CostVolumeNet(nn.Module):
         self.head = GridHead(2 * width, 0)
         self.flow = nn.Conv2d(2 * width, 2, 1)  # the auxiliary displacement field (flow_pose.field_targets)
 
-    def compare(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The comparison's features at stride 8 ``[B, width, h/8, w/8]`` and 16 ``[B, 2 width, h/16, w/16]``."""
-        b = render.shape[0]
+    def compare_features(self, fine: torch.Tensor, b: int, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The comparison of the trunk's stride-8 features ``fine`` (render's first ``b``, then the
+        crop's): features at stride 8 ``[B, width, h/8, w/8]`` and 16 ``[B, 2 width, h/16, w/16]``."""
         r_fine, r_coarse = _COST_RADII
-        fine = self.fine(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
         coarse = self.coarse(fine)
         h, w = fine.shape[-2:]
         x = [local_correlation(fine[:b], fine[b:], r_fine), coord_channels(b, h, w, fine)]
@@ -243,21 +243,30 @@ class CostVolumeNet(nn.Module):
         self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The raw outputs ``[B, 9]`` and the predicted displacement field ``[B, 2, h/16, w/16]``."""
-        _, x = self.compare(render, crop, emb)
+        fine = self.fine(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
+        _, x = self.compare_features(fine, render.shape[0], emb)
         return self.head(x), self.flow(x)
 
 
 class FlowSolveNet(CostVolumeNet):
-    """:class:`CostVolumeNet`'s comparison, decoded at stride 8 (the coarse features upsampled
-    beside the fine ones) to a displacement field and its uncertainty; no regression head.
-    The pose comes from the field (:func:`monose3.method.flow_pose.pose_from_field`), so the
-    network can only move the pose by saying where the render's parts are in the crop."""
+    """:class:`CostVolumeNet`'s comparison, decoded (the coarse features upsampled beside the
+    fine ones) to a displacement field and its uncertainty at ``config.field_stride``: 8, or 4
+    with a third cost volume on the trunk's stride-4 features (layer1) for finer moves. No
+    regression head: the pose comes from the field (:func:`monose3.method.flow_pose.pose_from_field`),
+    so the network can only move the pose by saying where the render's parts are in the crop."""
 
     def __init__(self, config: NetworkConfig, width: int = 128):
         super().__init__(config, width)
         del self.head, self.flow
+        if config.field_stride not in FIELD_STRIDES:
+            raise ValueError(f"field_stride must be one of {FIELD_STRIDES}, got {config.field_stride}")
         self.decode = _conv_block(3 * width, width)
-        self.field = nn.Conv2d(width, 3, 1)  # (dx, dy) in render widths, log of the Laplace scale
+        self.finest: nn.Module | None = None
+        out = width
+        if config.field_stride == 4:
+            self.finest = _conv_block(width + (2 * _FINEST_RADIUS + 1) ** 2 + 2, width // 2)
+            out = width // 2
+        self.field = nn.Conv2d(out, 3, 1)  # (dx, dy) in render widths, log of the Laplace scale
         nn.init.zeros_(self.field.weight)  # zero field, uniform scale: the identity update at init
         nn.init.zeros_(self.field.bias)
         nn.init.constant_(self.field.bias[2:], math.log(INITIAL_FIELD_SCALE))
@@ -265,10 +274,20 @@ class FlowSolveNet(CostVolumeNet):
     def forward(
         self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """The displacement field and the log of its Laplace scale per cell, ``[B, 3, h/8, w/8]``."""
-        x_fine, x = self.compare(render, crop, emb)
-        up = nn.functional.interpolate(x, size=x_fine.shape[-2:], mode="bilinear", align_corners=False)
-        return self.field(self.decode(torch.cat([x_fine, up], dim=1)))
+        """The displacement field and the log of its Laplace scale per cell, ``[B, 3, h/s, w/s]``."""
+        b = render.shape[0]
+        stride4 = self.fine[:5](torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
+        x_fine, x = self.compare_features(self.fine[5:](stride4), b, emb)
+        x = self.decode(torch.cat([x_fine, _upsample(x, x_fine)], dim=1))
+        if self.finest is not None:
+            h, w = stride4.shape[-2:]
+            cost = local_correlation(stride4[:b], stride4[b:], _FINEST_RADIUS)
+            x = self.finest(torch.cat([_upsample(x, stride4), cost, coord_channels(b, h, w, stride4)], dim=1))
+        return self.field(x)
+
+
+def _upsample(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return nn.functional.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
 
 class Denoiser(nn.Module):
