@@ -53,6 +53,14 @@ def test_solve_pose_recovers_a_pose_from_exact_pixels_and_stays_put_without_weig
     assert torch.allclose(solved, pose_0, atol=1e-6)
     still = solve_pose(pose_t, K, points, target, torch.zeros(2, 300, dtype=torch.float64))
     assert torch.allclose(still, pose_t)
+    ones = torch.ones(2, 300, dtype=torch.float64)
+    free = solve_pose(pose_t, K, points, target, ones, torch.zeros(2, 6, dtype=torch.float64), iterations=8)
+    assert torch.allclose(free, pose_0, atol=1e-6)  # a zero-precision prior changes nothing
+    held = solve_pose(pose_t, K, points, target, ones, torch.full((2, 6), 1e12, dtype=torch.float64))
+    assert torch.allclose(held, pose_t, atol=1e-5)  # an overwhelming prior keeps H_t
+    halfway = solve_pose(pose_t, K, points, target, ones, torch.full((2, 6), 1e7, dtype=torch.float64), iterations=8)
+    moved = lambda p: (p[:, :3, 3] - pose_t[:, :3, 3]).norm(dim=1)  # noqa: E731
+    assert ((moved(halfway) > 0.05 * moved(pose_0)) & (moved(halfway) < 0.95 * moved(pose_0))).all()
 
 
 def test_field_targets_are_zero_without_motion_and_the_image_shift_of_a_sideways_move(renderers, models, sample_view):

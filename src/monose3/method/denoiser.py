@@ -34,6 +34,10 @@ _CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (str
 # and +-48 px of a 128x96 crop, the render-crop offsets of t <= ~30.
 _COST_RADII = (4, 3)
 _FINEST_RADIUS = 3  # flow-solve at field_stride 4: its stride-4 cost volume reaches +-12 px
+# flow-solve's prior on the update at init: ~1 % of what ~300 surface points of a 128x96 crop
+# weigh in the solve (rotation per rad^2, translation per (depth unit)^2), so the field decides.
+INITIAL_LOG_PRIOR = torch.tensor([7.0, 7.0, 7.5, 11.0, 11.0, 9.0])
+_PRIOR_GAIN = 10.0  # the prior's log moves 10x faster than its weights, so Adam can move it by ~5 in 2000 steps
 INITIAL_FIELD_SCALE = 0.02  # flow-solve: the field's Laplace scale at init (render widths, ~ t 1-10's moves)
 
 
@@ -270,6 +274,15 @@ class FlowSolveNet(CostVolumeNet):
         nn.init.zeros_(self.field.weight)  # zero field, uniform scale: the identity update at init
         nn.init.zeros_(self.field.bias)
         nn.init.constant_(self.field.bias[2:], math.log(INITIAL_FIELD_SCALE))
+        emb = config.time_embedding_dim
+        self.prior = nn.Sequential(nn.Linear(emb, 32), nn.ReLU(inplace=True), nn.Linear(32, 6))
+        nn.init.zeros_(self.prior[2].weight)
+        nn.init.zeros_(self.prior[2].bias)
+
+    def prior_precision(self, emb: torch.Tensor) -> torch.Tensor:
+        """Precisions ``[B, 6]`` of the solve's prior on the update at each sample's t (learned:
+        how far the poses of step t lie from H_0, against how far the field can be trusted)."""
+        return torch.exp(INITIAL_LOG_PRIOR.to(emb) + _PRIOR_GAIN * self.prior(emb))
 
     def forward(
         self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
@@ -395,14 +408,16 @@ class Denoiser(nn.Module):
         self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``flow-solve``: the raw outputs of the update to the pose its field implies, and the
-        field with its log-scale ``[B, 3, h/8, w/8]``. Each cell counts in the solve by its
-        precision (1 / scale^2): the cells the network is unsure of hardly move the pose."""
+        field with its log-scale ``[B, 3, h/s, w/s]``. Each cell counts in the solve by its
+        precision (1 / scale^2), against a prior on the update learned per t
+        (:meth:`FlowSolveNet.prior_precision`): a field the network is unsure of moves the pose little."""
         if surface is None:
             raise ValueError("the flow-solve denoiser needs the render's surface (method.flow_pose.render_surface)")
         field = self.net(render, crop, emb)
         precision = torch.exp(-2.0 * (field[:, 2:].float() - math.log(INITIAL_FIELD_SCALE)))
         size = self.config.render_size
-        pose_0 = pose_from_field(field[:, :2].float(), precision, surface, size)
+        prior = self.net.prior_precision(emb.float())
+        pose_0 = pose_from_field(field[:, :2].float(), precision, surface, size, prior)
         return update_to_raw(*true_update(surface.pose_ref_t, pose_0, surface.K_crop), size[0]).to(field.dtype), field
 
     def read_rotation(self, raw: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:

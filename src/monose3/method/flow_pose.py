@@ -115,44 +115,61 @@ def solve_pose(
     points: torch.Tensor,
     target_uv: torch.Tensor,
     weights: torch.Tensor,
+    prior: torch.Tensor | None = None,
     iterations: int = SOLVE_ITERATIONS,
     damping: float = SOLVE_DAMPING,
 ) -> torch.Tensor:
     """The pose ``[B, 4, 4]`` that moves ``points`` ``[B, N, 3]`` (in ``pose``'s frame) to pixels
     ``target_uv`` ``[B, N, 2]`` under K ``[B, 3, 3]``: weighted least squares over pixel
     residuals (``weights`` ``[B, N]``, >= 0), damped Gauss-Newton from ``pose``. Points with
-    zero weight, or a sample with none, leave it where it is. Differentiable."""
+    zero weight, or a sample with none, leave it where it is. Differentiable.
+
+    ``prior`` ``[B, 6]`` (>= 0, optional): precisions of a zero-mean Gaussian on the update from
+    ``pose`` (rotation vector in radians, translation in units of ``pose``'s depth), so the
+    solution is the MAP pose: a field the solve cannot trust as a whole moves the pose less."""
+    scale = torch.cat([torch.ones_like(pose[:, :3, 3]), pose[:, 2:3, 3].abs().expand(-1, 3)], 1)
+    total = torch.zeros_like(scale)  # the update so far, in the prior's units
     for _ in range(iterations):
         rotated = points @ pose[:, :3, :3].transpose(1, 2)
         cam = rotated + pose[:, None, :3, 3]
         cam = torch.cat([cam[..., :2], cam[..., 2:].clamp_min(MIN_SOLVE_DEPTH)], -1)
         residual = target_uv - project(cam, K)
-        jac = reprojection_jacobian(cam, rotated, K)
+        jac = reprojection_jacobian(cam, rotated, K) * scale[:, None, None]
         w = weights[..., None, None]
         normal = (jac.transpose(-1, -2) @ (w * jac)).sum(1)
-        rhs = (jac.transpose(-1, -2) @ (w * residual[..., None])).sum(1)
+        rhs = (jac.transpose(-1, -2) @ (w * residual[..., None])).sum(1)[..., 0]
         diag = torch.diagonal(normal, dim1=-2, dim2=-1)
+        if prior is not None:
+            normal = normal + torch.diag_embed(prior)
+            rhs = rhs - prior * total
         normal = normal + torch.diag_embed(damping * diag + 1e-9)
-        step = torch.linalg.solve(normal, rhs)[..., 0]
+        step = torch.linalg.solve(normal, rhs[..., None])[..., 0]
+        total = total + step
+        step = step * scale
         pose = make_pose(rotvec_to_matrix(step[:, :3]) @ pose[:, :3, :3], pose[:, :3, 3] + step[:, 3:])
     return pose
 
 
 def pose_from_field(
-    field: torch.Tensor, confidence: torch.Tensor, surface: Surface, render_size: tuple[int, int]
+    field: torch.Tensor,
+    confidence: torch.Tensor,
+    surface: Surface,
+    render_size: tuple[int, int],
+    prior: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The H_0 ``[B, 4, 4]`` (camera-from-centroid) that a displacement field implies.
 
     ``field`` ``[B, 2, h, w]``: per cell, the move (units of the render width) of the robot's
     visible surface from the render (H_t) to the crop (H_0); ``confidence`` ``[B, 1, h, w]``
     (>= 0): how far to trust each cell. Each point of ``surface`` is moved by the field where
-    it lies, and the pose is solved by :func:`solve_pose` from H_t; its depth is kept at
+    it lies, and the pose is solved by :func:`solve_pose` from H_t (with ``prior`` on the
+    update, ``[B, 6]`` precisions, optional); its depth is kept at
     :data:`~monose3.method.pose_space.MIN_DEPTH` or more, as every pose the diffusion makes."""
     # Normalised convolution: the field weighted by its confidence, divided by the confidence,
     # so a point near the robot's outline is not pulled toward the empty cells beside it.
     sampled = sample_field(torch.cat([field * confidence, confidence], 1), surface.uv, render_size)
     weights = sampled[..., 2] * surface.valid.to(sampled.dtype)
     target = surface.uv + sampled[..., :2] / sampled[..., 2:].clamp_min(1e-6) * render_size[0]
-    pose = solve_pose(surface.pose_ref_t, surface.K_crop, surface.points_ref, target, weights)
+    pose = solve_pose(surface.pose_ref_t, surface.K_crop, surface.points_ref, target, weights, prior)
     depth = pose[:, 2, 3].clamp_min(MIN_DEPTH)
     return make_pose(pose[:, :3, :3], torch.cat([pose[:, :2, 3], depth[:, None]], 1))
