@@ -194,6 +194,27 @@ def evaluate(model: Denoiser | None, held: Pool, config: Config, ablation: str =
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+@torch.no_grad()
+def field_ceiling(held: Pool, config: Config, strides: tuple[int, ...] = (16, 8, 4)) -> dict[int, dict]:
+    """What the flow-solve design reaches when its field is the true one: Eq. 10 parts by t
+    bucket of the pose :func:`~monose3.method.flow_pose.pose_from_field` solves from the target
+    field (cell means of the visible surface's moves) at each stride, all cells trusted alike."""
+    from monose3.method.flow_pose import pose_from_field
+    from monose3.method.update import true_update, update_to_raw
+
+    batch = batch_of(held, torch.arange(len(held["t"])), config)
+    width, height = config.network.render_size
+    out = {}
+    for stride in strides:
+        field, mask = field_targets(
+            batch["surface"], batch["pose_ref_0"], (width, height), (height // stride, width // stride)
+        )
+        pose_0 = pose_from_field(field, mask.float(), batch["surface"], (width, height))
+        raw = update_to_raw(*true_update(batch["pose_ref_t"], pose_0, batch["K_crop"]), width)
+        out[stride] = bucket_means({k: v.numpy() for k, v in parts_of(raw, batch, config).items()}, held["t"].numpy())
+    return out
+
+
 def identity_gradients(held: Pool, config: Config) -> dict[str, float]:
     """Median over held-out samples of |d part / d its own raw outputs| at the identity update
     (raw = 0): how hard each part of Eq. 10 pulls on the network's output at init."""
@@ -464,6 +485,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--save-model", action="store_true", help="also save OUT/<design>.pt")
     p.add_argument("--out", default="/tmp/monose3_designs", help="folder for result_*.json, summary.json, PNG")
+    p.add_argument(
+        "--field-ceiling", action="store_true", help="also print what flow-solve reaches with the true field"
+    )
     p.add_argument("--report", action="store_true", help="only print the table and plot of the results in --out")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -485,6 +509,12 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     identity = bucket_means(evaluate(None, held, config), held["t"].numpy())
     (out / "identity.json").write_text(json.dumps(identity, indent=1))
+    if args.field_ceiling:
+        ceiling = field_ceiling(held, config)
+        (out / "field_ceiling.json").write_text(json.dumps(ceiling, indent=1))
+        for stride, buckets in ceiling.items():
+            cells = "  ".join(f"t {b} {'/'.join(f'{v:.4f}' for v in p.values())}" for b, p in buckets.items())
+            print(f"true field, stride {stride}: xy/rot/z {cells}")
     grads = identity_gradients(held, config)
     print(
         "median |d part / d own raw outputs| at the identity update: "
@@ -497,7 +527,8 @@ def main(argv: list[str] | None = None) -> int:
     for i, path in enumerate(args.weights):
         result = judge_weights(path, config, held)
         (out / f"result_weights{i:02d}.json").write_text(json.dumps(result, indent=1))
-    report(out)
+    if args.designs or args.weights:
+        report(out)
     return 0
 
 

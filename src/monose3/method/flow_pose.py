@@ -28,6 +28,7 @@ from monose3.method.pose_space import MIN_DEPTH
 
 SOLVE_ITERATIONS = 3  # damped Gauss-Newton steps from H_t (the update is small after the first)
 SOLVE_DAMPING = 1e-2  # Marquardt damping: lambda * diag(J^T W J), so no direction is ever unbounded
+MAX_STEP = 0.5  # largest Gauss-Newton step per coordinate: radians, and units of depth
 MIN_SOLVE_DEPTH = 0.05  # metres; points are projected as if at least this far while solving
 SURFACE_STRIDE = 2  # every 2nd rendered pixel in x and y becomes a surface point
 
@@ -144,6 +145,8 @@ def solve_pose(
             rhs = rhs - prior * total
         normal = normal + torch.diag_embed(damping * diag + 1e-9)
         step = torch.linalg.solve(normal, rhs[..., None])[..., 0]
+        # A trust region: far from the solution (large t) Gauss-Newton can overshoot, most of all in depth.
+        step = step * (MAX_STEP / step.abs().amax(1, keepdim=True).clamp_min(MAX_STEP))
         total = total + step
         step = step * scale
         pose = make_pose(rotvec_to_matrix(step[:, :3]) @ pose[:, :3, :3], pose[:, :3, 3] + step[:, 3:])
