@@ -19,7 +19,7 @@ put together afterwards with ``--report``::
     python -m monose3.apps.cli generate --out /tmp/d11/train --num 600 --seed 1 --size 320x240
     python -m monose3.apps.cli generate --out /tmp/d11/held --num 200 --seed 2 --size 320x240
     python benchmarks/denoiser_designs.py --train-data /tmp/d11/train --held-data /tmp/d11/held \\
-        --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat siamese --samples 8000
+        --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat flow-solve --samples 8000
     python benchmarks/denoiser_designs.py --out /tmp/d11/results --report
 
 Recipes: ``--rotation-output`` (``NetworkConfig.rotation_output``), ``--rot-weight``,
@@ -48,8 +48,8 @@ import numpy as np
 import torch
 
 from monose3.errors import Monose3Error, run_reporting_errors
-from monose3.method.config import DESIGNS, FIELD_DESIGNS, Config, get_preset, with_section
-from monose3.method.denoiser import Denoiser, pose_features
+from monose3.method.config import DESIGNS, FIELD_DESIGNS, ROTATION_OUTPUTS, Config, get_preset, with_section
+from monose3.method.denoiser import Denoiser
 from monose3.method.flow_pose import field_targets, render_surface
 from monose3.method.loss import disentangled_parts, flow_errors, flow_loss
 from monose3.training.loop import learning_rate
@@ -136,13 +136,10 @@ def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: 
 
 
 def batch_of(pool: Pool, idx: torch.Tensor, config: Config) -> dict[str, torch.Tensor]:
-    """Float batch of pool rows ``idx`` plus the pose features of H_t (denoiser.pose_features) and
-    the render's visible surface (flow_pose.render_surface)."""
+    """Float batch of pool rows ``idx`` plus the render's visible surface (flow_pose.render_surface)."""
     batch = {k: v[idx] for k, v in pool.items()}
     for key in ("render", "crop"):
         batch[key] = batch[key].float() / 255.0
-    net, c_z = config.network, config.diffusion.c_z
-    batch["pose"] = pose_features(batch["pose_ref_t"], batch["K_crop"], net.render_size, c_z).float()
     batch["surface"] = render_surface(batch["depth"].float(), batch["pose_ref_t"], batch["K_crop"])
     return batch
 
@@ -154,7 +151,7 @@ def model_out(model: Denoiser, batch: dict, render: torch.Tensor | None = None, 
     """The network's raw output on ``batch`` (and its field, ``with_flow``), optionally with
     another ``render`` (ablation: the image only; the geometry of H_t stays this sample's)."""
     render = batch["render"] if render is None else render
-    return model(render, batch["crop"], batch["t"], batch["pose"], with_flow=with_flow, surface=batch["surface"])
+    return model(render, batch["crop"], batch["t"], batch["surface"], with_flow=with_flow)
 
 
 def parts_of(raw: torch.Tensor, batch: dict[str, torch.Tensor], config: Config) -> dict[str, torch.Tensor]:
@@ -468,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--rot-weight", type=float, default=1.0, help="weight of Eq. 10's rotation part in training")
     p.add_argument(
-        "--rotation-output", default="6d", choices=["6d", "so3", "abs6d"], help="NetworkConfig.rotation_output"
+        "--rotation-output", default="6d", choices=list(ROTATION_OUTPUTS), help="NetworkConfig.rotation_output"
     )
     p.add_argument("--xyz-weight", type=float, default=1.0, help="weight of the xy and z parts (0: rotation only)")
     p.add_argument(

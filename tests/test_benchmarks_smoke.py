@@ -157,21 +157,22 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
     for name, n, seed in (("train", 16, 0), ("held", 8, 1)):
         np.savez(pools / "cpu" / f"{name}.npz", **{k: v.numpy() for k, v in _fake_design_pool(n, seed).items()})
     argv = ["--pool-dir", str(pools), "--pool-size", "16", "--held-size", "8", "--samples", "8", "--batch-size", "4"]
-    argv += ["--evals", "2", "--out", str(tmp_path / "out"), "--designs", "concat", "siamese-pose", "concat-grid"]
-    argv += ["--rotation-output", "abs6d", "--train-t-max", "60"]
+    argv += ["--evals", "2", "--out", str(tmp_path / "out"), "--designs", "concat", "concat-grid"]
+    argv += ["--rotation-output", "so3", "--train-t-max", "60"]
     assert bench.main(argv) == 0
     text = capsys.readouterr().out
-    assert "identity" in text and "siamese-pose" in text and "concat-grid" in text
+    assert "identity" in text and "concat " in text and "concat-grid" in text
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     for result in summary["results"]:
         assert [row["samples"] for row in result["curve"]] == [4, 8]
         assert set(result["ablation_pct"]) == {"zero", "swap"}
     assert (tmp_path / "out" / "designs.png").stat().st_size > 10_000
     argv[argv.index("concat") : argv.index("concat-grid") + 1] = ["cost-volume", "flow-solve"]
-    argv[argv.index("abs6d")] = "6d"
-    assert bench.main([*argv, "--flow-weight", "1", "--tag", "flow"]) == 0
+    argv[argv.index("so3")] = "6d"
+    assert bench.main([*argv, "--flow-weight", "1", "--tag", "flow", "--field-ceiling"]) == 0
     text = capsys.readouterr().out
     assert "cost-volume [flow]" in text and "flow-solve [flow]" in text and "flow L1 with zero field" in text
+    assert "true field, stride 8" in text
     np.savez(pools / "cpu" / "held.npz", **{k: v.numpy() for k, v in _fake_design_pool(8, 1).items() if k != "depth"})
     with pytest.raises(Monose3Error, match="no render depth"):
         bench.main(argv)

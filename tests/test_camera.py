@@ -289,3 +289,20 @@ def test_check_K_errors(K, size, pattern):  # noqa: N802
     with pytest.raises(Monose3Error, match=pattern) as info:
         check_K(K, size, source="cam.json", plausible=False)
     assert str(info.value).startswith("cam.json")
+
+
+def test_projection_jacobian_matches_finite_differences():
+    import torch
+
+    from monose3.geometry.camera import project, projection_jacobian
+
+    gen = torch.Generator().manual_seed(0)
+    points = torch.randn(2, 5, 3, generator=gen, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 1.5])
+    K = torch.tensor([[[300.0, 0, 160], [0, 310, 120], [0, 0, 1]]], dtype=torch.float64).expand(2, 3, 3)
+    jac = projection_jacobian(points, K)
+    assert jac.shape == (2, 5, 2, 3)
+    for axis in range(3):
+        step = torch.zeros(3, dtype=torch.float64)
+        step[axis] = 1e-6
+        numeric = (project(points + step, K) - project(points - step, K)) / 2e-6
+        assert torch.allclose(jac[..., axis], numeric, atol=1e-4)

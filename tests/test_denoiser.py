@@ -6,7 +6,7 @@ import torch
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_6d_to_matrix
 from monose3.method.config import DESIGNS, Config, NetworkConfig, get_preset, with_section
-from monose3.method.denoiser import POSE_FEATURES, Denoiser, local_correlation, pose_features, timestep_embedding
+from monose3.method.denoiser import Denoiser, local_correlation, timestep_embedding
 from monose3.method.flow_pose import Surface, render_surface
 from monose3.method.loss import disentangled_loss
 from monose3.method.update import apply_update, raw_to_update, true_update, update_to_raw
@@ -98,26 +98,17 @@ def test_each_design_starts_as_identity_and_learns_from_the_render(design):
     render = torch.rand(4, 3, 48, 64, requires_grad=True)
     crop, t = torch.rand(4, 3, 48, 64), torch.tensor([1, 5, 50, 90])
     h_t, h_0, K = _poses(4, 5), _poses(4, 6), _crop_K(4)
-    pose = pose_features(h_t, K, (64, 48), 1.5) if net.needs_pose else None
     surface = _surface((64, 48), h_t, K)
     # A zero head: the identity update at init (Eq. 9 with v_xy = 0, dR = I, v_z = 1).
-    assert torch.allclose(net(render, crop, t, pose, surface=surface), torch.zeros(4, 9), atol=1e-6)
+    assert torch.allclose(net(render, crop, t, surface), torch.zeros(4, 9), atol=1e-6)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
-    raw = net(render, crop, t, pose, surface=surface)
+    raw = net(render, crop, t, surface)
     loss, _ = disentangled_loss(raw, h_t, h_0, K, torch.randn(4, 50, 3) * 0.3, 64)
     loss.backward()
     optimizer.step()
     net.eval()
-    (grad,) = torch.autograd.grad(net(render, crop, t, pose, surface=surface).square().sum(), render)
+    (grad,) = torch.autograd.grad(net(render, crop, t, surface).square().sum(), render)
     assert grad.abs().sum() > 0  # the output depends on the render after one step
-
-
-def test_pose_features_are_x_t_in_the_crop_and_the_zoom():
-    h_t, K = _poses(3, 7), _crop_K(3)
-    feats = pose_features(h_t, K, (320, 240), 1.5)
-    assert feats.shape == (3, POSE_FEATURES)
-    assert torch.allclose(feats[:, 8], h_t[:, 2, 3] - 1.5)
-    assert torch.allclose(feats[:, 9], torch.log(torch.tensor(400.0 / 320)).expand(3))
 
 
 def test_configs_saved_before_the_design_field_load_as_concat():
@@ -132,14 +123,13 @@ def test_unknown_design_is_refused():
         Denoiser(NetworkConfig(backbone="resnet18", design="nope"))
 
 
-@pytest.mark.parametrize("design", ["concat-grid", "siamese-grid", "cost-volume", "flow-solve"])
+@pytest.mark.parametrize("design", ["concat-grid", "cost-volume", "flow-solve"])
 def test_grid_designs_give_nine_outputs_at_any_render_size(design):
     for size in ((64, 48), (128, 96), (320, 240)):
         net = Denoiser(NetworkConfig(backbone="resnet18", render_size=size, design=design)).eval()
         w, h = size
         render, crop = torch.rand(2, 3, h, w), torch.rand(2, 3, h, w)
-        pose = pose_features(_poses(2, 3), _crop_K(2), size, 1.5) if net.needs_pose else None
-        assert net(render, crop, torch.tensor([3, 70]), pose, surface=_surface(size)).shape == (2, 9)
+        assert net(render, crop, torch.tensor([3, 70]), _surface(size)).shape == (2, 9)
 
 
 @pytest.mark.parametrize("design", DESIGNS)
@@ -154,54 +144,38 @@ def test_every_design_round_trips_through_a_checkpoint(design, tmp_path):
             p.add_(torch.randn_like(p) * 0.01)
     net.eval()
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
-    pose = pose_features(_poses(2, 3), _crop_K(2), (64, 48), 1.5) if net.needs_pose else None
     surface = _surface((64, 48))
     save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
     loaded, loaded_config = load_model(tmp_path / "m.pt")
-    assert loaded_config.network.design == design and loaded.needs_pose == net.needs_pose
+    assert loaded_config.network.design == design
     with torch.no_grad():
-        out, expected = loaded(render, crop, t, pose, surface=surface), net(render, crop, t, pose, surface=surface)
+        out, expected = loaded(render, crop, t, surface), net(render, crop, t, surface)
         assert torch.allclose(out, expected, atol=1e-5) and not torch.allclose(out, torch.zeros_like(out))
 
 
-@pytest.mark.parametrize("rotation_output", ["so3", "abs6d"])
-def test_rotation_outputs_start_as_identity_and_round_trip(rotation_output, tmp_path):
+def test_the_so3_output_starts_as_identity_round_trips_and_means_its_rotation(tmp_path):
+    from monose3.method.denoiser import so3_raw
     from monose3.training.checkpoints import load_model, save_checkpoint
 
     config = with_section(
-        get_preset("cpu"), "network", render_size=(64, 48), design="siamese-grid", rotation_output=rotation_output
+        get_preset("cpu"), "network", render_size=(64, 48), design="concat-grid", rotation_output="so3"
     )
     net = Denoiser(config.network).eval()
-    assert net.needs_pose == (rotation_output == "abs6d")
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
-    pose = pose_features(_poses(2, 3), _crop_K(2), (64, 48), 1.5)
     with torch.no_grad():
-        assert torch.allclose(net(render, crop, t, pose), torch.zeros(2, 9), atol=1e-6)
+        assert torch.allclose(net(render, crop, t), torch.zeros(2, 9), atol=1e-6)
         for p in net.parameters():
             p.add_(torch.randn_like(p) * 0.01)
     save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
     loaded, saved = load_model(tmp_path / "m.pt")
-    assert saved.network.rotation_output == rotation_output
+    assert saved.network.rotation_output == "so3"
     with torch.no_grad():
-        assert torch.allclose(loaded(render, crop, t, pose), net(render, crop, t, pose), atol=1e-6)
-
-
-def test_so3_and_abs6d_outputs_map_exactly_onto_the_rotation_they_mean():
-    from monose3.geometry.rotations import matrix_to_rotation_6d
-    from monose3.method.denoiser import abs6d_raw, so3_raw
-
-    w = torch.tensor([[0.0, 0.0, 0.3], [0.2, -0.1, 0.05]])
+        assert torch.allclose(loaded(render, crop, t), net(render, crop, t), atol=1e-6)
     raw = torch.zeros(2, 9)
-    raw[:, 2:5] = w
+    raw[:, 2:5] = torch.tensor([[0.0, 0.0, 0.3], [0.2, -0.1, 0.05]])
     _, d_rot, _ = raw_to_update(so3_raw(raw), 64)
     assert torch.allclose(d_rot[0], euler_xyz_to_matrix(torch.tensor([[0.0, 0.0, 0.3]]))[0], atol=1e-6)
     assert torch.allclose(d_rot @ d_rot.transpose(1, 2), torch.eye(3).expand(2, 3, 3), atol=1e-6)
-    rot_t, rot_0 = _poses(2, 8)[:, :3, :3], _poses(2, 9)[:, :3, :3]
-    raw = torch.zeros(2, 9)
-    raw[:, 2:8] = matrix_to_rotation_6d(rot_0) - matrix_to_rotation_6d(rot_t)
-    pose = torch.cat([matrix_to_rotation_6d(rot_t), torch.zeros(2, 4)], dim=1)
-    _, d_rot, _ = raw_to_update(abs6d_raw(raw, pose), 64)
-    assert torch.allclose(d_rot @ rot_t, rot_0, atol=1e-5)
 
 
 def test_cost_volume_peaks_at_the_displacement_between_its_inputs():
@@ -222,12 +196,12 @@ def test_only_the_field_designs_return_a_flow():
     raw, flow = net(render, crop, t, with_flow=True)
     assert raw.shape == (2, 9) and flow.shape == (2, 2, 3, 4)
     net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve"))
-    raw, flow = net(render, crop, t, with_flow=True, surface=_surface((64, 48)))
+    raw, flow = net(render, crop, t, _surface((64, 48)), with_flow=True)
     assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 3, 6, 8)  # identity at init
     with pytest.raises(ValueError, match="needs the render's surface"):
         net(render, crop, t)
     net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve", field_stride=4))
-    raw, flow = net(render, crop, t, with_flow=True, surface=_surface((64, 48)))
+    raw, flow = net(render, crop, t, _surface((64, 48)), with_flow=True)
     assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 3, 12, 16)
     with pytest.raises(ValueError, match="field_stride must be one of"):
         Denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", field_stride=2))

@@ -241,7 +241,7 @@ def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
 
 @pytest.mark.parametrize(
     ("design", "rotation_output"),
-    [(d, "6d") for d in DESIGNS] + [("concat-grid", "so3"), ("siamese-grid", "abs6d")],
+    [(d, "6d") for d in DESIGNS] + [("concat-grid", "so3")],
 )
 def test_every_design_trains_and_estimates(frames, design, rotation_output):
     from monose3.method.estimator import PoseEstimator

@@ -174,6 +174,19 @@ def project(points, K):
     return points[..., :2] / z * focal + K[..., None, :2, 2]
 
 
+def projection_jacobian(points, K):
+    """d(pixel)/d(point) ``[..., N, 2, 3]`` of :func:`project` at camera-frame points ``[..., N, 3]``
+    with K ``[..., 3, 3]`` (torch); depths clamped as :func:`project` clamps them."""
+    import torch
+
+    x, y = points[..., 0], points[..., 1]
+    z = points[..., 2].clamp_min(PROJECTION_EPS_DEPTH)
+    fx, fy = K[..., 0, 0, None], K[..., 1, 1, None]
+    zero = torch.zeros_like(z)
+    rows = [fx / z, zero, -fx * x / z**2, zero, fy / z, -fy * y / z**2]
+    return torch.stack(rows, -1).reshape(*z.shape, 2, 3)
+
+
 def crop_boxes(uv_points, uv_center, aspect: float):
     """RoboPose's crop rule: ``[B, 4]`` boxes (x1, y1, x2, y2, edge coordinates), torch.
 

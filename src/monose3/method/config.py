@@ -32,16 +32,9 @@ class DiffusionConfig:
 
 
 # The denoiser architectures (method.denoiser): "concat" is the paper's; see docs/DESIGNS.md.
-DESIGNS = (
-    "concat",
-    "siamese",
-    "siamese-corr",
-    "siamese-pose",
-    "concat-grid",
-    "siamese-grid",
-    "cost-volume",
-    "flow-solve",
-)
+# The study's other candidates (siamese, siamese-corr, siamese-pose, siamese-grid; the abs6d
+# rotation output) lost and were removed after round 4; DESIGNS.md names the commit that has them.
+DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve")
 # The designs that predict a displacement field (method.flow_pose; TrainConfig.flow_weight trains it).
 FIELD_DESIGNS = ("cost-volume", "flow-solve")
 FIELD_STRIDES = (4, 8)
@@ -49,7 +42,7 @@ FIELD_STRIDES = (4, 8)
 # (RoboPose's 1.4); moved by more, the crop cuts the robot off.
 MAX_CROP_JITTER = 0.14
 # How the network's rotation outputs are read: "6d" is the paper's offset of the 6D rotation.
-ROTATION_OUTPUTS = ("6d", "so3", "abs6d")
+ROTATION_OUTPUTS = ("6d", "so3")
 
 
 @dataclass(frozen=True)
@@ -59,12 +52,11 @@ class NetworkConfig:
     input_size: tuple[int, int] = (640, 480)  # (w, h) every input image is brought to
     time_embedding_dim: int = 4  # C_emb
     # "concat": the paper's ResNet over concat(render, crop, C_emb) (Sec. III-C). The others
-    # (see DESIGNS) encode render and crop with one shared trunk and compare features.
+    # (see DESIGNS, docs/DESIGNS.md) compare render and crop features through cost volumes.
     design: str = "concat"
     # "6d": the rotation outputs are an offset from the identity's 6D vector (the paper's
     # 6D rotation, Gram-Schmidt). "so3": a rotation vector (radians) mapped to the same 6D
-    # layout inside the network, so no output direction leaves dR unchanged (network.so3_raw).
-    # "abs6d": an offset of the absolute 6D rotation, R_0 = GS(6D(R_t) + raw) (network.abs6d_raw).
+    # layout inside the network, so no output direction leaves dR unchanged (denoiser.so3_raw).
     rotation_output: str = "6d"
     # flow-solve: the stride (crop pixels per cell) of its displacement field, 8 or 4 (FIELD_STRIDES).
     field_stride: int = 8

@@ -9,10 +9,9 @@ import torch
 import torchvision
 from torch import nn
 
-from monose3.geometry.rotations import matrix_to_rotation_6d, rotation_6d_to_matrix, rotvec_to_matrix
+from monose3.geometry.rotations import matrix_to_rotation_6d, rotvec_to_matrix
 from monose3.method.config import DESIGNS, FIELD_DESIGNS, FIELD_STRIDES, ROTATION_OUTPUTS, NetworkConfig
 from monose3.method.flow_pose import Surface, pose_from_field
-from monose3.method.pose_space import normalize_pose
 from monose3.method.update import IDENTITY_6D, true_update, update_to_raw
 
 NUM_OUTPUTS = 9  # v_xy (2), dR 6D (6), v_z (1)
@@ -26,10 +25,7 @@ def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.cat([torch.sin(args), torch.cos(args)], dim=1)
 
 
-POSE_DESIGNS = ("siamese-pose",)  # designs whose head reads pose_features of H_t
 _GRID = (3, 4)  # (h, w) cells the "-grid" designs pool the last feature map to (not one global mean)
-POSE_FEATURES = 10  # x_t of Eq. 4 in the crop (9) + log(f / w) of the crop intrinsics (1)
-_CORR_RADIUS = 3  # displacements of the correlation volume, in trunk cells (stride 8)
 # "cost-volume": radii of its two cost volumes, at strides 8 and 16; 4 and 3 cells reach +-32
 # and +-48 px of a 128x96 crop, the render-crop offsets of t <= ~30.
 _COST_RADII = (4, 3)
@@ -53,31 +49,6 @@ def _to_net_range(image: torch.Tensor) -> torch.Tensor:
     return (image - 0.5) * 4.0
 
 
-def pose_features(
-    pose_ref_t: torch.Tensor, K_crop: torch.Tensor, render_size: tuple[int, int], c_z: float
-) -> torch.Tensor:
-    """The noisy pose as the network sees it, ``[B, 10]``: x_t of Eq. 4 normalised in the crop
-    (H_t's 6D rotation, its centre in crop units, tz - c_z) and log(fx / w) of the crop's
-    intrinsics, the zoom that relates crop pixels to angles."""
-    size = torch.tensor([render_size], dtype=pose_ref_t.dtype, device=pose_ref_t.device).expand(len(pose_ref_t), 2)
-    x_t = normalize_pose(pose_ref_t, K_crop.to(pose_ref_t.dtype), size, c_z)
-    zoom = torch.log(K_crop[:, 0, 0].to(pose_ref_t.dtype) / render_size[0])[:, None]
-    return torch.cat([x_t, zoom], dim=1)
-
-
-def pose_input(
-    config: NetworkConfig, pose_ref_t: torch.Tensor, K_crop: torch.Tensor, c_z: float
-) -> torch.Tensor | None:
-    """What a design reads besides the images: :func:`pose_features` for :data:`POSE_DESIGNS`, else None."""
-    return pose_features(pose_ref_t, K_crop, config.render_size, c_z) if needs_pose(config) else None
-
-
-def needs_pose(config: NetworkConfig) -> bool:
-    """Whether the denoiser reads :func:`pose_features` of H_t: the :data:`POSE_DESIGNS` feed
-    them to the head; ``rotation_output="abs6d"`` uses only H_t's rotation, in the output map."""
-    return config.design in POSE_DESIGNS or config.rotation_output == "abs6d"
-
-
 def so3_raw(raw: torch.Tensor) -> torch.Tensor:
     """Raw outputs whose rotation part is read as a rotation vector (``raw[:, 2:5]``, radians)
     instead of a 6D offset, returned in the 6D layout :func:`raw_to_update` reads (exact: the
@@ -87,21 +58,6 @@ def so3_raw(raw: torch.Tensor) -> torch.Tensor:
     full-size steps (measured: raw std ~0.3 on the two 6D diagonal entries after 1000 steps)."""
     rot = matrix_to_rotation_6d(rotvec_to_matrix(raw[:, 2:5])) - IDENTITY_6D.to(raw)
     return torch.cat([raw[:, :2], rot, raw[:, 8:]], dim=1)
-
-
-def abs6d_raw(raw: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-    """Raw outputs whose rotation part is an offset of the *absolute* 6D rotation
-    (R_0 = GS(6D(R_t) + raw[:, 2:8]), R_t from ``pose[:, :6]`` of :func:`pose_features`),
-    returned in the camera-frame 6D layout of :func:`raw_to_update` (dR = R_0 R_t^T, exact).
-
-    The target offset 6D(R_0) - 6D(R_t) is the difference of two absolute orientations, one
-    seen in the crop and one in the render: linear in features that encode orientation.
-    The camera-frame dR of Eq. 9 is their bilinear combination (dR = R_0 R_t^T), which a
-    CNN head has to learn as a product. The head still sees no pose, only the images."""
-    r6 = pose[:, :6].to(raw.dtype)
-    rot_t = rotation_6d_to_matrix(r6)
-    d_rot = rotation_6d_to_matrix(r6 + raw[:, 2:8]) @ rot_t.transpose(1, 2)
-    return torch.cat([raw[:, :2], matrix_to_rotation_6d(d_rot) - IDENTITY_6D.to(raw), raw[:, 8:]], dim=1)
 
 
 def coord_channels(b: int, h: int, w: int, like: torch.Tensor) -> torch.Tensor:
@@ -118,19 +74,18 @@ class GridHead(nn.Module):
     the robot moves image content in opposite directions on either side of it; a global
     average pools that displacement field to ~0, a grid keeps it."""
 
-    def __init__(self, channels: int, extra: int, squeeze: int = 64):
+    def __init__(self, channels: int, squeeze: int = 64):
         super().__init__()
         self.pool = nn.Sequential(
             nn.AdaptiveAvgPool2d(_GRID), nn.Conv2d(channels, squeeze, 1), nn.ReLU(inplace=True), nn.Flatten()
         )
-        self.head = _zero_head(squeeze * _GRID[0] * _GRID[1] + extra)
+        self.head = _zero_head(squeeze * _GRID[0] * _GRID[1])
 
-    def forward(self, x: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
-        x = self.pool(x)
-        return self.head(x if extra is None else torch.cat([x, extra.to(x.dtype)], dim=1))
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.pool(x))
 
 
-def local_correlation(a: torch.Tensor, b: torch.Tensor, radius: int = _CORR_RADIUS) -> torch.Tensor:
+def local_correlation(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Tensor:
     """FlowNet-C style cost volume: for each displacement d in [-r, r]^2 the mean over channels
     of a(x) * b(x + d) (features L2-normalised per cell), ``[B, (2r+1)^2, h, w]``."""
     a = nn.functional.normalize(a, dim=1)
@@ -146,56 +101,6 @@ def _zero_head(in_features: int) -> nn.Sequential:
     nn.init.zeros_(head[2].weight)
     nn.init.zeros_(head[2].bias)
     return head
-
-
-class SiameseNet(nn.Module):
-    """Render and crop through one shared trunk (ResNet stem to layer2, stride 8), fused as
-    (f_r, f_c, f_r - f_c [, cost volume], C_emb), then layer3/4, pooling and an MLP head.
-
-    Sharing the trunk puts both images in one feature space, so their difference is the
-    misalignment that Eq. 9's update must undo; the crop alone is no longer a wider path.
-    With ``use_pose`` the head also gets :func:`pose_features` (x_t of Eq. 4/5 and the zoom).
-    """
-
-    def __init__(self, config: NetworkConfig, correlate: bool = False, use_pose: bool = False, grid: bool = False):
-        super().__init__()
-        net = _resnet(config.backbone)
-        self.emb_dim, self.correlate, self.use_pose, self.grid = config.time_embedding_dim, correlate, use_pose, grid
-        self.trunk = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2)
-        width = net.layer3[0].conv1.in_channels
-        fuse_in = 3 * width + self.emb_dim + ((2 * _CORR_RADIUS + 1) ** 2 if correlate else 0) + (2 if grid else 0)
-        self.fuse = nn.Sequential(
-            nn.Conv2d(fuse_in, width, 1, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True)
-        )
-        extra = self.emb_dim + POSE_FEATURES if use_pose else 0
-        if grid:
-            self.body = nn.Sequential(net.layer3, net.layer4)
-            self.head = GridHead(net.fc.in_features, extra)
-        else:
-            self.body = nn.Sequential(net.layer3, net.layer4, nn.AdaptiveAvgPool2d(1), nn.Flatten())
-            self.head = _zero_head(net.fc.in_features + extra)
-
-    def forward(
-        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None
-    ) -> torch.Tensor:
-        b = render.shape[0]
-        feats = self.trunk(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
-        f_r, f_c = feats[:b], feats[b:]
-        h, w = feats.shape[-2:]
-        parts = [f_r, f_c, f_r - f_c, emb[:, :, None, None].expand(b, -1, h, w)]
-        if self.correlate:
-            parts.append(local_correlation(f_r, f_c))
-        if self.grid:
-            parts.append(coord_channels(b, h, w, f_r))
-        x = self.body(self.fuse(torch.cat(parts, dim=1)))
-        extra = None
-        if self.use_pose:
-            if pose is None:
-                raise ValueError("this denoiser design needs the pose features of H_t (method.denoiser.pose_features)")
-            extra = torch.cat([emb, pose.to(x.dtype)], dim=1)
-        if self.grid:
-            return self.head(x, extra)
-        return self.head(x if extra is None else torch.cat([x, extra], dim=1))
 
 
 def _conv_block(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
@@ -227,7 +132,7 @@ class CostVolumeNet(nn.Module):
             _conv_block(2 * width, 2 * width),
             _conv_block(2 * width, 2 * width),
         )
-        self.head = GridHead(2 * width, 0)
+        self.head = GridHead(2 * width)
         self.flow = nn.Conv2d(2 * width, 2, 1)  # the auxiliary displacement field (flow_pose.field_targets)
 
     def compare_features(self, fine: torch.Tensor, b: int, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -243,9 +148,7 @@ class CostVolumeNet(nn.Module):
         x = torch.cat([self.down(x_fine), cost, coord_channels(b, h, w, coarse)], dim=1)
         return x_fine, self.coarse_cost(x)
 
-    def forward(
-        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The raw outputs ``[B, 9]`` and the predicted displacement field ``[B, 2, h/16, w/16]``."""
         fine = self.fine(torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
         _, x = self.compare_features(fine, render.shape[0], emb)
@@ -284,9 +187,7 @@ class FlowSolveNet(CostVolumeNet):
         how far the poses of step t lie from H_0, against how far the field can be trusted)."""
         return torch.exp(INITIAL_LOG_PRIOR.to(emb) + _PRIOR_GAIN * self.prior(emb))
 
-    def forward(
-        self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, pose: torch.Tensor | None = None
-    ) -> torch.Tensor:
+    def forward(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
         """The displacement field and the log of its Laplace scale per cell, ``[B, 3, h/s, w/s]``."""
         b = render.shape[0]
         stride4 = self.fine[:5](torch.cat([_to_net_range(render), _to_net_range(crop)], dim=0))
@@ -307,9 +208,10 @@ class Denoiser(nn.Module):
     """The pose denoiser of Sec. III-C; ``config.design`` picks the architecture (:data:`DESIGNS`).
 
     ``concat`` (the paper's): a ResNet (from scratch) over render (3) + crop (3) + timestep
-    embedding (C_emb) channels. ``siamese``, ``siamese-corr``, ``siamese-pose``: :class:`SiameseNet`.
-    ``cost-volume``: :class:`CostVolumeNet`, whose head sees only the comparison.
-    Outputs raw values; :func:`raw_to_update` turns them into (v_xy, dR, v_z).
+    embedding (C_emb) channels; ``concat-grid``: the same with coordinate channels and a
+    :class:`GridHead`. ``cost-volume``: :class:`CostVolumeNet`, whose head sees only the
+    comparison. ``flow-solve``: :class:`FlowSolveNet`, the pose solved from its displacement
+    field (docs/DESIGNS.md). Outputs raw values; :func:`raw_to_update` turns them into (v_xy, dR, v_z).
     """
 
     def __init__(self, config: NetworkConfig):
@@ -331,7 +233,7 @@ class Denoiser(nn.Module):
                 net.layer2,
                 net.layer3,
                 net.layer4,
-                GridHead(net.fc.in_features, 0),
+                GridHead(net.fc.in_features),
             )
         elif config.design == "concat":
             net = _resnet(config.backbone)
@@ -343,22 +245,10 @@ class Denoiser(nn.Module):
             self.net: nn.Module = net
         elif config.design == "cost-volume":
             self.net = CostVolumeNet(config)
-        elif config.design == "flow-solve":
+        else:
             if config.rotation_output != "6d":
                 raise ValueError("the flow-solve design solves its rotation from the field; use rotation_output='6d'")
             self.net = FlowSolveNet(config)
-        else:
-            self.net = SiameseNet(
-                config,
-                correlate=config.design == "siamese-corr",
-                use_pose=config.design in POSE_DESIGNS,
-                grid=config.design == "siamese-grid",
-            )
-
-    @property
-    def needs_pose(self) -> bool:
-        """Whether :meth:`forward` needs ``pose`` (:func:`pose_features` of H_t)."""
-        return needs_pose(self.config)
 
     @property
     def predicts_flow(self) -> bool:
@@ -375,15 +265,13 @@ class Denoiser(nn.Module):
         render: torch.Tensor,
         crop: torch.Tensor,
         t: torch.Tensor,
-        pose: torch.Tensor | None = None,
-        with_flow: bool = False,
         surface: Surface | None = None,
+        with_flow: bool = False,
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        """``render``, ``crop``: ``[B, 3, h, w]`` in [0, 1]; ``t``: ``[B]`` steps; ``pose``:
-        ``[B, 10]`` from :func:`pose_features` (read by ``siamese-pose`` and ``abs6d``);
-        ``surface``: the render's visible surface (:func:`~monose3.method.flow_pose.render_surface`,
-        needed by ``flow-solve``). Returns ``[B, 9]``, and with ``with_flow`` (:data:`FIELD_DESIGNS`)
-        also the predicted displacement field ``[B, 2, h', w']`` (``flow-solve``: ``[B, 3, h', w']``,
+        """``render``, ``crop``: ``[B, 3, h, w]`` in [0, 1]; ``t``: ``[B]`` steps; ``surface``: the
+        render's visible surface (:func:`~monose3.method.flow_pose.render_surface`, needed by
+        ``flow-solve``). Returns ``[B, 9]``, and with ``with_flow`` (:data:`FIELD_DESIGNS`) also
+        the predicted displacement field ``[B, 2, h', w']`` (``flow-solve``: ``[B, 3, h', w']``,
         with the log of its Laplace scale) for :func:`monose3.method.loss.flow_loss`."""
         if with_flow and not self.predicts_flow:
             raise ValueError(f"the {self.config.design!r} denoiser predicts no flow; {FIELD_DESIGNS} do")
@@ -391,17 +279,16 @@ class Denoiser(nn.Module):
         flow = None
         if self.config.design == "flow-solve":
             raw, flow = self.solve(render, crop, emb, surface)
-        elif self.predicts_flow:
-            raw, flow = self.net(render, crop, emb, pose)
-        elif self.config.design not in ("concat", "concat-grid"):
-            raw = self.net(render, crop, emb, pose)
+        elif self.config.design == "cost-volume":
+            raw, flow = self.net(render, crop, emb)
         else:
             b, _, h, w = render.shape
             x = [_to_net_range(render), _to_net_range(crop), emb[:, :, None, None].expand(b, -1, h, w)]
             if self.config.design == "concat-grid":
                 x.append(coord_channels(b, h, w, render))
             raw = self.net(torch.cat(x, dim=1))
-        raw = self.read_rotation(raw, pose)
+        if self.config.rotation_output == "so3":
+            raw = so3_raw(raw)
         return (raw, flow) if with_flow else raw
 
     def solve(
@@ -419,13 +306,3 @@ class Denoiser(nn.Module):
         prior = self.net.prior_precision(emb.float())
         pose_0 = pose_from_field(field[:, :2].float(), precision, surface, size, prior)
         return update_to_raw(*true_update(surface.pose_ref_t, pose_0, surface.K_crop), size[0]).to(field.dtype), field
-
-    def read_rotation(self, raw: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:
-        """The raw outputs in the 6D layout of :func:`raw_to_update`, whatever ``rotation_output``."""
-        if self.config.rotation_output == "so3":
-            return so3_raw(raw)
-        if self.config.rotation_output == "abs6d":
-            if pose is None:
-                raise ValueError("rotation_output='abs6d' needs the pose features of H_t (pose_features)")
-            return abs6d_raw(raw, pose)
-        return raw

@@ -18,7 +18,7 @@ from monose3.geometry.camera import project, standardize_image
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
 from monose3.method.config import Config
-from monose3.method.denoiser import Denoiser, pose_input
+from monose3.method.denoiser import Denoiser
 from monose3.method.flow_pose import render_surface
 from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
@@ -136,10 +136,12 @@ class PoseEstimator:
             crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
         with self.timed("network"):
             steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
-            pose_t, K_t = pose_ref.to(self.device), K_crop.to(self.device)
-            pose = pose_input(net, pose_t, K_t, self.config.diffusion.c_z)
-            surface = render_surface(rendered.depth, pose_t.float(), K_t.float()) if self.model.needs_surface else None
-            raw = self.model(rendered.rgb, crops.to(self.device), steps, pose, surface=surface).double().cpu()
+            surface = None
+            if self.model.needs_surface:
+                surface = render_surface(
+                    rendered.depth, pose_ref.to(self.device).float(), K_crop.to(self.device).float()
+                )
+            raw = self.model(rendered.rgb, crops.to(self.device), steps, surface).double().cpu()
         with self.timed("update"):
             v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
             return apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)

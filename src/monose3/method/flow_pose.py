@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from monose3.geometry.camera import project
+from monose3.geometry.camera import project, projection_jacobian
 from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import rotvec_to_matrix, skew
 from monose3.method.pose_space import MIN_DEPTH
@@ -100,14 +100,9 @@ def reprojection_jacobian(cam_points: torch.Tensor, rotated: torch.Tensor, K: to
     R <- exp(omega) R, t <- t + delta (rotation about the frame's origin, camera axes).
 
     ``cam_points``: X ``[B, N, 3]``; ``rotated``: R P ``[B, N, 3]``; K ``[B, 3, 3]``."""
-    x, y = cam_points[..., 0], cam_points[..., 1]
-    z = cam_points[..., 2].clamp_min(MIN_SOLVE_DEPTH)
-    fx, fy = K[:, 0, 0, None], K[:, 1, 1, None]
-    zero = torch.zeros_like(z)
-    d_uv = torch.stack([fx / z, zero, -fx * x / z**2, zero, fy / z, -fy * y / z**2], -1).reshape(*z.shape, 2, 3)
     d_rotated = -skew(rotated)
-    d_point = torch.cat([d_rotated, torch.eye(3, dtype=z.dtype, device=z.device).expand_as(d_rotated)], -1)
-    return d_uv @ d_point
+    eye = torch.eye(3, dtype=rotated.dtype, device=rotated.device).expand_as(d_rotated)
+    return projection_jacobian(cam_points, K) @ torch.cat([d_rotated, eye], -1)
 
 
 def solve_pose(

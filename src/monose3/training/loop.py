@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader
 from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.method.config import Config
-from monose3.method.denoiser import Denoiser, pose_input
+from monose3.method.denoiser import Denoiser
 from monose3.method.flow_pose import field_targets, render_surface
 from monose3.method.loss import disentangled_loss, flow_loss
 from monose3.method.scheduler import make_noiser
@@ -97,11 +97,10 @@ def train_step(
     """One optimiser step of Alg. 1 on a batch (tensors on the model's device); returns the loss."""
     for group in optimizer.param_groups:
         group["lr"] = lr
-    pose = pose_input(config.network, batch["pose_ref_t"], batch["K_crop"], config.diffusion.c_z)
     surface = render_surface(batch["depth"], batch["pose_ref_t"], batch["K_crop"])
     with_flow = config.train.flow_weight > 0
     with amp():
-        out = model(batch["render"], batch["crop"], batch["t"], pose, with_flow=with_flow, surface=surface)
+        out = model(batch["render"], batch["crop"], batch["t"], surface, with_flow=with_flow)
     raw, flow = out if with_flow else (out, None)
     poses = (batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"])
     _, parts = disentangled_loss(raw.float(), *poses, config.network.render_size[0])
