@@ -54,3 +54,12 @@ def test_fp16_export_is_half_the_size_and_predicts_the_same(checkpoint, tmp_path
     with torch.no_grad():
         assert torch.allclose(loaded(x, x, t), model(x, x, t), atol=2e-3)
     assert config.network == TINY_NET
+
+
+@pytest.mark.parametrize(("design", "rotation_output"), [("siamese-pose", "6d"), ("concat-grid", "abs6d")])
+def test_a_checkpoint_of_a_removed_design_is_a_clear_error(tmp_path, design, rotation_output):
+    config = get_preset("cpu", network=TINY_NET).to_dict()
+    config["network"].update(design=design, rotation_output=rotation_output)
+    save_checkpoint(tmp_path / "old.pt", {"model": {}, "config": config, "step": 1})
+    with pytest.raises(Monose3Error, match=f"holds a '{design}' denoiser .* no longer builds"):
+        load_model(tmp_path / "old.pt")

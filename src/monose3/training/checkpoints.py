@@ -10,7 +10,7 @@ from typing import Any
 import torch
 
 from monose3.errors import Monose3Error
-from monose3.method.config import Config
+from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, Config
 from monose3.method.denoiser import Denoiser
 from monose3.training.formats import CHECKPOINT_FORMAT as FORMAT
 
@@ -79,7 +79,13 @@ def load_model(
             f"checkpoint {Path(path).name} uses preset {config.preset!r}, not {preset!r}; "
             f"pass --preset {config.preset} or train a {preset} model"
         )
-    model = Denoiser(config.network)
+    net = config.network
+    if net.design not in DESIGNS or net.rotation_output not in ROTATION_OUTPUTS:
+        raise Monose3Error(
+            f"checkpoint {Path(path).name} holds a {net.design!r} denoiser with the {net.rotation_output!r} output, "
+            "which monose3 no longer builds (removed after the design study, docs/DESIGNS.md); train a new model"
+        )
+    model = Denoiser(net)
     weights = {k: v.float() for k, v in state["model"].items()}
     model.load_state_dict(weights)
     return model.to(device).eval(), config
