@@ -283,6 +283,10 @@ def test_t_curriculum_caps_and_then_widens_the_drawn_timesteps(frames):
     maker = BatchMaker(fixed, Sources(frames), torch.device("cpu"), 0, 0, 1)
     drawn = torch.cat([maker.batch(step)[1]["t"] for step in range(3)])
     assert drawn.min() >= 1 and drawn.max() <= 10
+    # a run started from other weights (--init) at step 5000 starts its curriculum afresh
+    widening = with_section(tiny_config(), "train", t_max=10, t_curriculum_steps=100)
+    maker = BatchMaker(widening, Sources(frames), torch.device("cpu"), 5000, 0, 1, curriculum_from=5000)
+    assert torch.cat([maker.batch(5000 + step)[1]["t"] for step in range(3)]).max() <= 12  # not T = 100
 
 
 def test_crop_jitter_moves_the_crop_off_h_t_and_the_render_with_it(frames):

@@ -119,9 +119,20 @@ def train_step(
 class BatchMaker:
     """Makes the batch of each step from the sources, on ``device``."""
 
-    def __init__(self, config: Config, sources: Sources, device: torch.device, start: int, rank: int, world: int):
+    def __init__(
+        self,
+        config: Config,
+        sources: Sources,
+        device: torch.device,
+        start: int,
+        rank: int,
+        world: int,
+        curriculum_from: int = 0,
+    ):
         tc = config.train
         self.config, self.sources, self.device = config, sources, device
+        # The t curriculum, like the warm-up, counts from the run's first step (an --init run starts both afresh).
+        self.curriculum_from = curriculum_from
         self.robot = RobotModel(config.robot)
         self.renderer = RobotRenderer(self.robot, device)
         self.noiser = make_noiser(config.diffusion)
@@ -164,7 +175,7 @@ class BatchMaker:
         scenes = next(self._scenes) if self._scenes is not None else None
         seed = self.config.train.seed * 1000 + self.rank
         gen = step_generator(seed, step)
-        t_max = max_timestep(step, self.config)
+        t_max = max_timestep(step - self.curriculum_from, self.config)
         if source == "frames":
             batch = frames_batch(frames, self.robot, self.renderer, self.noiser, self.config, gen, self.device, t_max)
             return source, batch
@@ -275,7 +286,7 @@ def train(
     device = torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
     out, tc = Path(out_dir), config.train
     run = start_run(config, out, device, resume, init)
-    maker = BatchMaker(config, sources, device, run.step, rank, world)
+    maker = BatchMaker(config, sources, device, run.step, rank, world, curriculum_from=run.warm_from)
     out.mkdir(parents=True, exist_ok=True)
     net = torch.nn.parallel.DistributedDataParallel(run.model) if world > 1 else run.model
     net = torch.compile(net) if compile_model else net
