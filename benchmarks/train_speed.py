@@ -21,7 +21,6 @@ import sys
 import tempfile
 import time
 from contextlib import nullcontext
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ import torch
 from monose3.data.datasets import open_dataset
 from monose3.data.scenes.writer import generate_dataset
 from monose3.errors import run_reporting_errors
-from monose3.method.config import Config, get_preset
+from monose3.method.config import DESIGNS, Config, get_preset, with_section
 from monose3.method.denoiser import Denoiser
 from monose3.training.loop import BatchMaker, Sources, train_step
 
@@ -96,7 +95,16 @@ def measure(config: Config, source: str, frames: list, device: torch.device, ste
     return row
 
 
-def run(presets: list[str], sources: list[str], steps: int, batch_size: int | None, workers: int, profile: bool):
+def run(
+    presets: list[str],
+    sources: list[str],
+    steps: int,
+    batch_size: int | None,
+    workers: int,
+    profile: bool,
+    design: str | None = None,
+    flow_weight: float = 0.0,
+):
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -105,7 +113,9 @@ def run(presets: list[str], sources: list[str], steps: int, batch_size: int | No
             for device in devices:
                 config = get_preset(name)
                 bs = batch_size or (config.train.batch_size if device.type == "cpu" else 128)
-                config = replace(config, train=replace(config.train, batch_size=bs, num_workers=workers))
+                config = with_section(config, "train", batch_size=bs, num_workers=workers, flow_weight=flow_weight)
+                if design:
+                    config = with_section(config, "network", design=design)
                 for source in sources:
                     r = measure(config, source, frames, device, steps, profile)
                     rows.append({"preset": name, "device": device.type, "source": source, "bs": bs, **r})
@@ -147,11 +157,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=0, help="data-loader workers")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--profile", action="store_true", help="print the top operators of each row")
+    p.add_argument("--design", choices=list(DESIGNS), help="denoiser design (default: the preset's)")
+    p.add_argument("--flow-weight", type=float, default=0.0, help="the field designs' auxiliary loss weight [0]")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     tick = time.perf_counter()
-    rows = run(args.presets, args.sources, args.steps, args.batch_size, args.workers, args.profile)
+    rows = run(
+        args.presets,
+        args.sources,
+        args.steps,
+        args.batch_size,
+        args.workers,
+        args.profile,
+        args.design,
+        args.flow_weight,
+    )
     print(report(rows))
     print(f"({time.perf_counter() - tick:.1f} s, torch {torch.__version__}, numpy {np.__version__})")
     return 0

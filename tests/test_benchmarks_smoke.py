@@ -67,7 +67,8 @@ def test_fixper_std_inversion() -> None:
 @pytest.mark.slow
 def test_train_speed_small(capsys: pytest.CaptureFixture[str], keep_threads: None) -> None:
     ts = load("train_speed")
-    assert ts.main(["--presets", "cpu", "--steps", "1", "--threads", "1", "--batch-size", "2"]) == 0
+    argv = ["--presets", "cpu", "--steps", "1", "--threads", "1", "--batch-size", "2"]
+    assert ts.main([*argv, "--design", "flow-solve", "--flow-weight", "0.5"]) == 0
     text = capsys.readouterr().out
     for source in ("synthetic", "frames"):
         row = next(line for line in text.splitlines() if line.startswith(f"cpu    cpu  {source}"))
