@@ -285,7 +285,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
             print(f"{design}: {row['samples']} samples, {train_s:.0f} s, held-out xy/rot/z {by_t}", flush=True)
             tick = time.perf_counter()
     normal = evaluate(model, held, config)
-    ablations = render_ablation(model, held, config, normal)
+    ablations, ablations_by_t = render_ablation(model, held, config, normal)
     if args.save_model:
         from monose3.training.checkpoints import save_checkpoint
 
@@ -308,17 +308,27 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         "recipe": recipe,
         "curve": curve,
         "ablation_pct": ablations,
+        "ablation_pct_by_t": ablations_by_t,
     }
     return result | flow_check(model, held, config)
 
 
-def render_ablation(model: Denoiser, held: Pool, config: Config, normal: dict[str, np.ndarray]) -> dict:
-    """How much each held-out part grows (%) when the render is zeroed or swapped for another sample's."""
-    out = {}
+def render_ablation(model: Denoiser, held: Pool, config: Config, normal: dict[str, np.ndarray]) -> tuple[dict, dict]:
+    """How much each held-out part grows (%) when the render is zeroed or swapped for another
+    sample's: over all samples (the issue's measure) and by t bucket (the all-t mean is
+    dominated by large t, where a model trained on small t barely moves)."""
+    t = held["t"].numpy()
+    overall, by_t = {}, {}
     for name in ("zero", "swap"):
         ablated = evaluate(model, held, config, name)
-        out[name] = {k: float(100.0 * (ablated[k].mean() / normal[k].mean() - 1.0)) for k in PARTS}
-    return out
+        overall[name] = _growth_pct(ablated, normal, np.ones(len(t), dtype=bool))
+        rows = {f"{lo}-{hi}": (t >= lo) & (t <= hi) for lo, hi in BUCKETS}
+        by_t[name] = {b: _growth_pct(ablated, normal, r) for b, r in rows.items() if r.any()}
+    return overall, by_t
+
+
+def _growth_pct(ablated: dict[str, np.ndarray], normal: dict[str, np.ndarray], rows: np.ndarray) -> dict:
+    return {k: float(100.0 * (ablated[k][rows].mean() / normal[k][rows].mean() - 1.0)) for k in PARTS}
 
 
 @torch.no_grad()
@@ -354,10 +364,11 @@ def judge_weights(path: str, config: Config, held: Pool) -> dict:
     config = with_section(config, "network", design=saved.network.design)
     state_samples = _samples_seen(path)
     normal = evaluate(model, held, config)
-    ablations = render_ablation(model, held, config, normal)
+    ablations, ablations_by_t = render_ablation(model, held, config, normal)
     row = {"samples": state_samples, "train_s": 0.0, "buckets": bucket_means(normal, held["t"].numpy())}
     name = f"{saved.network.design} [{Path(path).name}]"
     result = {"design": name, "rot_weight": saved.train.rot_weight, "curve": [row], "ablation_pct": ablations}
+    result["ablation_pct_by_t"] = ablations_by_t
     return result | flow_check(model, held, config)
 
 
@@ -400,6 +411,15 @@ def print_table(results: list[dict], identity: dict) -> None:
             f"{name:<22}{last['samples']:>8}{last['train_s']:>8.0f}  {cells(last['buckets'])}  {pct}"
             f"  abl>=30%:{yes[v['ablation_ge_30pct']]} rot<id:{yes[v['rot_below_identity']]}"
         )
+    for r in results:  # the ablation by t bucket (results since it was recorded)
+        by_t = r.get("ablation_pct_by_t")
+        if by_t:
+            cells = "  ".join(
+                f"t {b} {by_t['zero'][b]['xy']:+.0f}/{by_t['zero'][b]['rot']:+.0f} "
+                f"{by_t['swap'][b]['xy']:+.0f}/{by_t['swap'][b]['rot']:+.0f}"
+                for b in by_t["zero"]
+            )
+            print(f"  {r['design']}: render zeroed / swapped, xy/rot % by t: {cells}")
     for r in results:  # the cost-volume design's displacement field (flow_check)
         flow = r.get("flow_l1", {})
         for kind in flow.get("all", {}):

@@ -167,6 +167,8 @@ def test_denoiser_designs_small(tmp_path: Path, capsys: pytest.CaptureFixture[st
     for result in summary["results"]:
         assert [row["samples"] for row in result["curve"]] == [4, 8]
         assert set(result["ablation_pct"]) == {"zero", "swap"}
+        assert set(result["ablation_pct_by_t"]["swap"]) <= {"1-10", "11-20", "21-50", "51-100"}
+    assert "render zeroed / swapped, xy/rot % by t" in text
     assert (tmp_path / "out" / "designs.png").stat().st_size > 10_000
     argv[argv.index("concat") : argv.index("concat-grid") + 1] = ["cost-volume", "flow-solve"]
     argv[argv.index("so3")] = "6d"
