@@ -31,8 +31,6 @@ IGNORED_CSV_COLUMNS = ("time", "timestamp", "stamp")
 NAME_CSV_COLUMNS = ("frame", "name")
 
 
-
-
 def _natural_key(name: str) -> list:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 

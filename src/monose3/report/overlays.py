@@ -254,11 +254,6 @@ def denoising_strip(
     return strip
 
 
-
-
-
-
-
 def pose_overlays(
     renderer: RobotRenderer,
     images: Sequence[np.ndarray],

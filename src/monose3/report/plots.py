@@ -21,13 +21,11 @@ def new_figure(size: tuple[float, float] = (6.4, 4.4)) -> Figure:
     return fig
 
 
-
 def save_figure(fig: Figure, path: str | Path, dpi: float | str = "figure") -> Path:
     p = Path(path)
     with atomic_path(p) as tmp:
         fig.savefig(tmp, bbox_inches="tight", dpi=dpi, format=(p.suffix[1:] or "png").lower())
     return p
-
 
 
 def plot_add_distribution(adds_by_name: Mapping[str, np.ndarray], path: str | Path) -> Path:
@@ -55,7 +53,6 @@ def plot_add_distribution(adds_by_name: Mapping[str, np.ndarray], path: str | Pa
     ax.grid(True, alpha=0.4)
     ax.legend(loc="lower right")
     return save_figure(fig, path)
-
 
 
 def plot_curves(
