@@ -16,11 +16,11 @@ folder, or from scenes synthesised on the fly (``--train-data synthetic``), and 
 ``.npz``, so each candidate runs network-bound. Candidates can run in separate processes (``--designs`` one each) and be
 put together afterwards with ``--report``::
 
-    python -m monose3.apps.cli generate --out /tmp/d11/train --num 600 --seed 1 --size 320x240
-    python -m monose3.apps.cli generate --out /tmp/d11/held --num 200 --seed 2 --size 320x240
-    python benchmarks/denoiser_designs.py --train-data /tmp/d11/train --held-data /tmp/d11/held \\
-        --pool-dir /tmp/d11/pool --out /tmp/d11/results --designs concat flow-solve --samples 8000
-    python benchmarks/denoiser_designs.py --out /tmp/d11/results --report
+    python -m monose3.apps.cli generate --out train --num 600 --seed 1 --size 320x240
+    python -m monose3.apps.cli generate --out held --num 200 --seed 2 --size 320x240
+    python benchmarks/denoiser_designs.py --train-data train --held-data held \\
+        --pool-dir pool --out results --designs concat flow-solve --samples 8000
+    python benchmarks/denoiser_designs.py --out results --report
 
 Recipes: ``--rotation-output`` (``NetworkConfig.rotation_output``), ``--rot-weight``,
 ``--xyz-weight 0`` (the rotation part alone), ``--train-t-max`` (train on small t only),
@@ -232,7 +232,8 @@ def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[
     out = {}
     for lo, hi in BUCKETS:
         sel = (t >= lo) & (t <= hi)
-        out[f"{lo}-{hi}"] = {k: float(v[sel].mean()) for k, v in parts.items()}
+        # An empty bucket (a small held-out pool) is NaN, printed as such, without numpy's warning.
+        out[f"{lo}-{hi}"] = {k: float(v[sel].mean()) if sel.any() else float("nan") for k, v in parts.items()}
     out["all"] = {k: float(v.mean()) for k, v in parts.items()}
     return out
 

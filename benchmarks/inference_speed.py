@@ -19,7 +19,7 @@ ratio FPS / target, not asserted. Where the time beyond render + network exceeds
 total, its pieces outside render + network are timed alone (to tell a real cost from a call
 preempted on a busy machine) and one call is profiled.
 
-    python benchmarks/inference_speed.py [--repeats 5] [--presets paper cpu] [--batches 1 64]
+    python benchmarks/inference_speed.py [--repeats 5] [--presets paper cpu] [--batches 1 64] [--design flow-solve]
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ import torch
 from monose3.data.datasets import open_dataset
 from monose3.data.scenes.writer import generate_dataset
 from monose3.errors import run_reporting_errors
-from monose3.method.config import get_preset
+from monose3.method.config import DESIGNS, get_preset, with_section
 from monose3.method.denoiser import Denoiser
 from monose3.method.estimator import PoseEstimator
 from monose3.method.pose_space import base_frame, centroid_frame
@@ -165,12 +165,20 @@ def overhead_breakdown(est: PoseEstimator, frame: dict, repeats: int = 30) -> di
     return out
 
 
-def run(presets: list[str], batches: list[int], repeats: int, profile_over: float = OVERHEAD_LIMIT) -> dict:
+def run(
+    presets: list[str],
+    batches: list[int],
+    repeats: int,
+    profile_over: float = OVERHEAD_LIMIT,
+    design: str | None = None,
+) -> dict:
     device = "cuda" if torch.cuda.is_available() else "cpu"
     frame = load_frame()
     rows, profiles = [], []
     for name in presets:
         config = get_preset(name)
+        if design:
+            config = with_section(config, "network", design=design)
         torch.manual_seed(0)
         model = Denoiser(config.network)
         est = PoseEstimator(model, config, device=device)
@@ -184,13 +192,13 @@ def run(presets: list[str], batches: list[int], repeats: int, profile_over: floa
                     text = "\n".join(f"  {k:<26} {v:7.2f} ms" for k, v in parts.items())
                     profiles.append((f"{name}, B={w}, {mode}", text + "\n" + profile(call)))
         est.close()
-    return {"rows": rows, "profiles": profiles, "device": device}
+    return {"rows": rows, "profiles": profiles, "device": device, "design": design or "the preset's"}
 
 
 def report(out: dict) -> str:
     lines = [
         f"Inference speed on {out['device']} (torch threads {torch.get_num_threads()}), one 640x480 image, "
-        f"1 hypothesis; median wall time; stages in ms; load average {load_average()}",
+        f"1 hypothesis, design {out['design']}; median wall time; stages in ms; load average {load_average()}",
         f"{'preset':<6} {'B':>1} {'mode':<9} {'FPS':>6} {'wall':>7} {'render':>7} {'crop':>6} {'network':>8} "
         f"{'update':>7} {'other':>6} {'beyond':>7} {'target':>7} {'ratio':>6}",
     ]
@@ -236,12 +244,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batches", type=int, nargs="+", default=[1], help="images per call (e.g. 1 64)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, help="torch threads (default: torch's own choice)")
+    p.add_argument("--design", choices=list(DESIGNS), help="denoiser design (default: the preset's)")
     p.add_argument("--no-profile", action="store_true", help="skip profiling configurations over the limit")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     tick = time.perf_counter()
-    out = run(args.presets, args.batches, args.repeats, profile_over=2.0 if args.no_profile else OVERHEAD_LIMIT)
+    profile_over = 2.0 if args.no_profile else OVERHEAD_LIMIT
+    out = run(args.presets, args.batches, args.repeats, profile_over, args.design)
     print(report(out))
     print(f"({time.perf_counter() - tick:.1f} s)")
     return 0

@@ -79,8 +79,10 @@ def test_train_speed_small(capsys: pytest.CaptureFixture[str], keep_threads: Non
 @pytest.mark.slow
 def test_inference_speed_small(capsys: pytest.CaptureFixture[str], keep_threads: None) -> None:
     bench = load("inference_speed")
-    assert bench.main(["--presets", "cpu", "--batches", "1", "--repeats", "1", "--no-profile", "--threads", "1"]) == 0
+    argv = ["--presets", "cpu", "--batches", "1", "--repeats", "1", "--no-profile", "--threads", "1"]
+    assert bench.main([*argv, "--design", "flow-solve"]) == 0
     text = capsys.readouterr().out
+    assert "design flow-solve" in text
     rows = [line for line in text.splitlines() if line.startswith("cpu    1 ")]
     assert [r.split()[2] for r in rows] == ["10", "5", "tracking"]
     fps = {r.split()[2]: float(r.split()[3 if r.split()[2] == "tracking" else 4]) for r in rows}

@@ -20,6 +20,7 @@ from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, get_preset, with_section
 from monose3.method.denoiser import INITIAL_FIELD_SCALE, Denoiser
 from monose3.training.checkpoints import read_checkpoint
+from monose3.training.formats import BUNDLED_CHECKPOINT
 from monose3.training.loop import BatchMaker, Sources, learning_rate, train, train_step
 from monose3.training.samples import GlobalSampleSampler
 from monose3.training.shards import SHARD_BYTES, read_shards, split_state, write_shards
@@ -185,7 +186,8 @@ def kuka_shards(tmp_path_factory):
         (["--minutes", "0"], "--minutes must be > 0"),
         (["--minutes", "-3"], "--minutes must be > 0"),
         (["--init", "nowhere"], "not found"),
-        (["--init", "KUKA"], "kuka/cpu model"),
+        (["--init", "KUKA"], "holds another network: pass --robot kuka or another --init"),
+        (["--init", "BUNDLED"], "pass --design flow-solve or another --init"),
         (["--backgrounds", "EMPTY"], "no images"),
         (["--out", "FILE"], "is a file"),
         (["--t-max", "0"], "--t-max must be at least 1"),
@@ -200,7 +202,12 @@ def kuka_shards(tmp_path_factory):
 def test_cli_bad_input_is_one_line_before_any_work(tmp_path, capsys, kuka_shards, extra, words):
     (tmp_path / "empty").mkdir()
     (tmp_path / "file").write_text("x")
-    names = {"KUKA": str(kuka_shards), "EMPTY": str(tmp_path / "empty"), "FILE": str(tmp_path / "file")}
+    names = {
+        "KUKA": str(kuka_shards),
+        "BUNDLED": str(BUNDLED_CHECKPOINT),
+        "EMPTY": str(tmp_path / "empty"),
+        "FILE": str(tmp_path / "file"),
+    }
     extra = [names.get(e, e) for e in extra]
     out = tmp_path / "run"
     args = ["train", "--synthetic", "--out", str(out), "--steps", "1", *extra]

@@ -82,16 +82,19 @@ def _running_mean(values: list[float], width: int) -> list[float]:
 
 
 def plot_training_logs(log_csv: Path, path: Path, smooth: int = 10) -> Path | None:
-    """The loss of a run (``log.csv``) and its three parts of Eq. 10 against samples seen."""
+    """Eq. 10 of a run (``log.csv``) and its three parts against samples seen. The sum is of the
+    unweighted parts, not the training objective: with ``rot_weight`` or a field's negative
+    log-likelihood (which can be below zero) that is not Eq. 10 and would not fit a log axis."""
     from monose3.report.plots import plot_curves
 
     with open(log_csv) as fh:
         rows = list(csv.DictReader(fh))
     if not rows:
         return None
-    curves = {
-        name: _running_mean([float(r[col]) for r in rows], smooth)
-        for name, col in (("total", "loss"), ("v_xy", "loss_xy"), ("rotation", "loss_rot"), ("v_z", "loss_z"))
+    parts = {"v_xy": "loss_xy", "rotation": "loss_rot", "v_z": "loss_z"}
+    eq10 = [sum(float(r[col]) for col in parts.values()) for r in rows]
+    curves = {"Eq. 10 (sum)": _running_mean(eq10, smooth)} | {
+        name: _running_mean([float(r[col]) for r in rows], smooth) for name, col in parts.items()
     }
     return plot_curves(
         [int(r.get("samples") or 0) or int(r["step"]) for r in rows],

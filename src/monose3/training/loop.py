@@ -206,16 +206,27 @@ def _init_weights(model: Denoiser, init: str | Path, config: Config) -> tuple[in
     state = read_weights(init)
     saved = Config.from_dict(state["config"])
     if (saved.robot, saved.network) != (config.robot, config.network):
-        raise Monose3Error(
-            f"--init {init} holds a {saved.robot}/{saved.preset} model, not {config.robot}/{config.preset}; "
-            f"pass --preset {saved.preset} --robot {saved.robot} or another --init"
-        )
+        raise Monose3Error(f"--init {init} holds another network: pass {_flags_of(saved, config)} or another --init")
     try:
         model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()})
     except RuntimeError as err:
         raise Monose3Error(f"--init {init}: weights do not fit the network ({str(err)[:120]})") from None
     step = int(state.get("step", 0))
     return step, int(state.get("samples", step * saved.train.batch_size))
+
+
+# The train flags that set each NetworkConfig field (the others come with --preset).
+_NETWORK_FLAGS = {"design": "--design", "rotation_output": "--rotation-output", "field_stride": "--field-stride"}
+
+
+def _flags_of(saved: Config, config: Config) -> str:
+    """The train flags that would rebuild ``saved``'s robot and network from ``config``'s."""
+    flags = [] if saved.robot == config.robot else [f"--robot {saved.robot}"]
+    for name, value in vars(saved.network).items():
+        if value != getattr(config.network, name):
+            flag = _NETWORK_FLAGS.get(name, "--preset")
+            flags.append(f"{flag} {saved.preset if flag == '--preset' else value}")
+    return " ".join(dict.fromkeys(flags))
 
 
 @dataclass
