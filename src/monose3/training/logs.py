@@ -15,14 +15,15 @@ LOG_FIELDS = ["step", "samples", "loss", "loss_xy", "loss_rot", "loss_z", "loss_
 class CsvTensorBoardLog:
     """CSV (always) and TensorBoard (rank 0) logs; on resume, rows after the checkpoint are dropped."""
 
-    def __init__(self, out: Path, start_step: int):
-        self.path = out / "log.csv"
+    def __init__(self, out: Path, start_step: int, fields: list[str] = LOG_FIELDS):
+        self.path, self.fields = out / "log.csv", fields
+        out.mkdir(parents=True, exist_ok=True)
         rows = []
         if self.path.is_file() and start_step > 0:
             with open(self.path) as fh:
                 rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= start_step]
         with open(self.path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, LOG_FIELDS, extrasaction="ignore")
+            writer = csv.DictWriter(fh, fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
         from torch.utils.tensorboard import SummaryWriter
@@ -31,7 +32,7 @@ class CsvTensorBoardLog:
 
     def write(self, row: dict) -> None:
         with open(self.path, "a", newline="") as fh:
-            csv.DictWriter(fh, LOG_FIELDS, extrasaction="ignore").writerow(row)
+            csv.DictWriter(fh, self.fields, extrasaction="ignore").writerow(row)
         for key, value in row.items():
             if key not in ("step", "source"):
                 self.tb.add_scalar(f"train/{key}", value, row["step"])

@@ -169,10 +169,14 @@ def _shape_masks(gen, n: int, size: tuple[int, int], centre, radius, device) -> 
     return torch.where(kind == 0, ellipse, torch.where(kind == 1, rect, bar)).float()
 
 
-def _paint_shapes(gen, img: torch.Tensor, count: int, prob: float, scale: tuple[float, float], centre_at=None):
-    """Paint up to ``count`` shapes in flat random colours onto ``img`` (each with ``prob``)."""
+def _paint_shapes(
+    gen, img: torch.Tensor, count: int, prob: float, scale: tuple[float, float], centre_at=None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Paint up to ``count`` shapes in flat random colours onto ``img`` (each with ``prob``);
+    returns the image and where it was painted ``[n, 1, h, w]``."""
     n, _, h, w = img.shape
     device = img.device
+    painted = torch.zeros(n, 1, h, w, device=device)
     for _ in range(count):
         on = (torch.rand(n, 1, 1, 1, generator=gen, device=device) < prob).float()
         centre = _uniform(gen, (n, 2), -1, 1, device) * torch.tensor([1.0, h / w], device=device)
@@ -182,7 +186,8 @@ def _paint_shapes(gen, img: torch.Tensor, count: int, prob: float, scale: tuple[
         mask = _shape_masks(gen, n, (w, h), centre, radius, device) * on
         color = torch.rand(n, 3, 1, 1, generator=gen, device=device)
         img = img * (1 - mask) + color * mask
-    return img
+        painted = torch.maximum(painted, mask)
+    return img, painted
 
 
 def _inside_image(views: NoisyViews, size: tuple[int, int], image_size: tuple[int, int], device) -> torch.Tensor:
@@ -261,6 +266,46 @@ def augment(gen, img: torch.Tensor, profile: SceneProfile) -> torch.Tensor:
     return jpeg_like(img.clamp(0, 1), quality)
 
 
+def _light_batch(scenes: dict[str, torch.Tensor], device: torch.device) -> LightingBatch:
+    terms = scenes["light_terms"].float().to(device)
+    return LightingBatch(
+        direction=scenes["light_direction"].float().to(device),
+        color=scenes["light_color"].float().to(device),
+        ambient=terms[:, 0],
+        diffuse=terms[:, 1],
+        specular=terms[:, 2],
+        shininess=terms[:, 3],
+    )
+
+
+def compose_scenes(
+    renderer: RobotRenderer,
+    scenes: dict[str, torch.Tensor],
+    K: torch.Tensor,
+    size: tuple[int, int],
+    profile: SceneProfile,
+    photos: torch.Tensor | None,
+    gen: torch.Generator,
+    device: torch.device,
+    occluder_centre: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The robot of each scene seen through ``K`` ``[B, 3, 3]`` at ``size``, over a random
+    background with distractors, then occluders near ``occluder_centre`` ``[B, 2]`` ([-1, 1]
+    coordinates); returns the image before augmentation ``[B, 3, h, w]`` and the robot's
+    visible (unoccluded) mask ``[B, 1, h, w]``."""
+    n = len(K)
+    links = len(renderer.model.links)
+    tint = _uniform(gen, (n, links, 3), 0.8, 1.15, device) * _uniform(gen, (n, 1, 1), 0.75, 1.2, device)
+    light = _light_batch(scenes, device)
+    robot = renderer.render(scenes["joints"].numpy(), scenes["pose"].to(device), K.to(device), size, light, tint)
+    img = backgrounds(gen, n, size, photos, device)
+    img, _ = _paint_shapes(gen, img, profile.distractors[1], 0.5, (0.05, 0.4))
+    alpha = robot.mask[:, None].float()
+    img = img * (1 - alpha) + robot.rgb * alpha
+    img, occluded = _paint_shapes(gen, img, 2, profile.occluder_prob / 2, (0.05, 0.25), centre_at=occluder_centre)
+    return img, alpha * (1 - occluded)
+
+
 def synthesize_crops(
     renderer: RobotRenderer,
     scenes: dict[str, torch.Tensor],
@@ -274,25 +319,27 @@ def synthesize_crops(
 ) -> torch.Tensor:
     """The image crops ``[B, 3, h, w]`` a camera would have given for these scenes, at the crops
     ``views`` defines (what ``crop_batch`` cuts from a real image)."""
-    n = len(views.t)
-    light = LightingBatch(
-        direction=scenes["light_direction"].float().to(device),
-        color=scenes["light_color"].float().to(device),
-        ambient=scenes["light_terms"][:, 0].float().to(device),
-        diffuse=scenes["light_terms"][:, 1].float().to(device),
-        specular=scenes["light_terms"][:, 2].float().to(device),
-        shininess=scenes["light_terms"][:, 3].float().to(device),
-    )
-    links = len(renderer.model.links)
-    tint = _uniform(gen, (n, links, 3), 0.8, 1.15, device) * _uniform(gen, (n, 1, 1), 0.75, 1.2, device)
-    robot = renderer.render(
-        scenes["joints"].numpy(), scenes["pose"].to(device), views.K_crop.to(device), size, light, tint
-    )
-    img = backgrounds(gen, n, size, photos, device)
-    img = _paint_shapes(gen, img, profile.distractors[1], 0.5, (0.05, 0.4))
-    alpha = robot.mask[:, None].float()
-    img = img * (1 - alpha) + robot.rgb * alpha
-    centre = torch.zeros(n, 2, device=device)  # the crop is centred on the robot at H_t
-    img = _paint_shapes(gen, img, 2, profile.occluder_prob / 2, (0.05, 0.25), centre_at=centre)
+    centre = torch.zeros(len(views.t), 2, device=device)  # the crop is centred on the robot at H_t
+    img, _ = compose_scenes(renderer, scenes, views.K_crop, size, profile, photos, gen, device, centre)
     # The camera's image is what gets jittered; the crop's zero padding comes after.
     return augment(gen, img, profile) * _inside_image(views, size, image_size, device)
+
+
+def synthesize_images(
+    renderer: RobotRenderer,
+    scenes: dict[str, torch.Tensor],
+    size: tuple[int, int],
+    profile: SceneProfile,
+    photos: torch.Tensor | None,
+    gen: torch.Generator,
+    device: torch.device,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Whole camera images ``[B, 3, h, w]`` of these scenes (intrinsics ``scenes["K"]`` at
+    ``size``) and the robot's visible mask ``[B, 1, h, w]``: the robot parser's training pairs."""
+    K = scenes["K"].float().to(device)
+    pose = scenes["pose"].float().to(device)
+    uv = (K @ pose[:, :3, 3:])[:, :, 0]  # the base's pixel: occluders gather near the robot
+    w, h = size
+    centre = torch.stack([uv[:, 0] / uv[:, 2] / w * 2 - 1, (uv[:, 1] / uv[:, 2] / h * 2 - 1) * h / w], 1)
+    img, visible = compose_scenes(renderer, scenes, K, size, profile, photos, gen, device, centre.clamp(-1, 1))
+    return augment(gen, img, profile), visible
