@@ -47,12 +47,14 @@ ZOOM_MAX_FRACTION = 0.7  # zoom only when the mask's box is smaller than this fr
 MIN_KEYPOINT_CONFIDENCE = 0.2
 PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view's width
 SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
-KEEP_HYPOTHESES = 3  # refined per image
+KEEP_HYPOTHESES = 4  # refined per image
 REFINE_ITERATIONS = 8
 OUTLINE_POINTS = 300  # render outline pixels used per iteration
 OUTLINE_WEIGHT = 7.0  # the outline's total weight in the solve (each keypoint weighs its confidence <= 1)
 OUTLINE_SCALE = 0.015  # Cauchy scale of outline residuals, fraction of the view's width
-KEYPOINT_PENALTY = 2.0  # score = IoU - this * (mean keypoint error / view width)
+KEYPOINT_PENALTY = 2.0
+KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
+KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width  # score = IoU - this * (mean keypoint error / view width)
 CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
 SPHERE_AZIMUTHS, SPHERE_ELEVATIONS, SPHERE_ROLLS = 12, (0.0, 30.0, 60.0), (0.0,)
 
@@ -147,9 +149,13 @@ def pnp_hypotheses(view: ViewEvidence, keypoints_base: np.ndarray) -> list[np.nd
         idx = inliers[:, 0]
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], view.K, None, rvec, tvec)
         poses.append(_pose(rvec, tvec))
-    ok, rvec, tvec = cv2.solvePnP(obj, img, view.K, None, flags=cv2.SOLVEPNP_SQPNP)
-    if ok:
-        poses.append(_pose(rvec, tvec))
+    subsets = [np.ones(len(obj), bool)]
+    if len(obj) > 4:  # each keypoint left out in turn: one wrong keypoint then spoils one subset only
+        subsets += [np.arange(len(obj)) != i for i in range(len(obj))]
+    for keep in subsets:
+        ok, rvec, tvec = cv2.solvePnP(obj[keep], img[keep], view.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if ok:
+            poses.append(_pose(rvec, tvec))
     return [p for p in poses if np.isfinite(p).all() and p[2, 3] > 0.05]
 
 
@@ -193,7 +199,8 @@ def silhouette_ious(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarr
     """IoU ``[H]`` of each pose's rendered silhouette with the view's mask, compared at ``size``."""
     K = _scaled_K(view.K, view.size, size)
     n = len(poses)
-    rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), torch.from_numpy(K)[None].expand(n, 3, 3), size)
+    K = torch.from_numpy(K)[None].expand(n, 3, 3)
+    rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, size)
     mask = F.interpolate(view.mask[None, None], size=(size[1], size[0]), mode="bilinear", align_corners=False)[0, 0]
     mask = (mask > MASK_THRESHOLD).to(rendered.mask.device)
     inter = (rendered.mask & mask).flatten(1).sum(1).float()
@@ -210,13 +217,13 @@ def _scaled_K(K: np.ndarray, size: tuple[int, int], new_size: tuple[int, int]) -
 
 
 def keypoint_errors(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
-    """Mean reprojection error ``[H]`` (view pixels) of the confident keypoints at each pose."""
-    good = view.confidence >= MIN_KEYPOINT_CONFIDENCE
-    if not good.any():
-        return np.zeros(len(poses))
-    cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base[good]) + poses[:, None, :3, 3]
-    uv = project(cam, view.K)
-    return np.linalg.norm(uv - view.keypoints[good], axis=-1).mean(-1)
+    """Confidence-weighted mean reprojection error ``[H]`` (view pixels) of the keypoints at
+    each pose, each error capped at :data:`KEYPOINT_ERROR_CAP` of the view's width (a keypoint
+    the parser got wrong costs a bounded amount)."""
+    cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base) + poses[:, None, :3, 3]
+    err = np.linalg.norm(project(cam, view.K) - view.keypoints, axis=-1)
+    err = np.minimum(err, KEYPOINT_ERROR_CAP * view.size[0])
+    return (err * view.confidence).sum(-1) / max(view.confidence.sum(), 1e-6)
 
 
 def fit_scores(ious: np.ndarray, kp_errors: np.ndarray, view: ViewEvidence) -> np.ndarray:
@@ -272,11 +279,14 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     """Silhouette + keypoint refinement of ``poses`` ``[H, 4, 4]`` (see the module's step 4)."""
     targets = OutlineTargets(view)
     rng = np.random.default_rng(0)
-    kp_weights = np.where(view.confidence >= MIN_KEYPOINT_CONFIDENCE, view.confidence, 0.0)
     scale = OUTLINE_SCALE * view.size[0]
     for _ in range(iterations):
         points, goals, weights = [], [], []
-        for uv, base in render_outline(renderer, joints, poses, view, rng):
+        cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base) + poses[:, None, :3, 3]
+        kp_dist = np.linalg.norm(project(cam, view.K) - view.keypoints, axis=-1)
+        kp_weights = view.confidence / (1 + (kp_dist / (KEYPOINT_SCALE * view.size[0])) ** 2)
+        outlines = render_outline(renderer, joints, poses, view, rng)
+        for (uv, base), kp_w in zip(outlines, kp_weights, strict=True):
             if targets.empty or len(uv) == 0:
                 w = np.zeros(len(uv))
                 goal = uv
@@ -286,18 +296,22 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
                 w = OUTLINE_WEIGHT / len(uv) / (1 + (dist / scale) ** 2)
             points.append(np.concatenate([keypoints_base, base]))
             goals.append(np.concatenate([view.keypoints, goal]))
-            weights.append(np.concatenate([kp_weights, w]))
-        n = max(len(p) for p in points)
-        pad = lambda arrays, d: np.stack([np.pad(a, [(0, n - len(a))] + [(0, 0)] * (d - 1)) for a in arrays])  # noqa: E731
-        new = solve_pose(torch.from_numpy(poses), torch.from_numpy(view.K)[None].expand(len(poses), 3, 3),
-                         torch.from_numpy(pad(points, 2)), torch.from_numpy(pad(goals, 2)),
-                         torch.from_numpy(pad(weights, 1)), iterations=2).numpy()  # fmt: skip
+            weights.append(np.concatenate([kp_w, w]))
+        K = torch.from_numpy(view.K)[None].expand(len(poses), 3, 3)
+        new = solve_pose(torch.from_numpy(poses), K, _stack_padded(points), _stack_padded(goals),
+                         _stack_padded(weights), iterations=2).numpy()  # fmt: skip
         moved_mm = 1000 * np.linalg.norm(new[:, :3, 3] - poses[:, :3, 3], axis=-1).max()
         moved_deg = np.degrees(rotation_angle(new[:, :3, :3], poses[:, :3, :3])).max()
         poses = new
         if moved_mm < CONVERGED_MM and moved_deg < CONVERGED_DEG:
             break
     return poses
+
+
+def _stack_padded(arrays: list[np.ndarray]) -> torch.Tensor:
+    """Rows of different lengths stacked, zero-padded (zero weight: padding does not count)."""
+    n = max(len(a) for a in arrays)
+    return torch.from_numpy(np.stack([np.pad(a, [(0, n - len(a))] + [(0, 0)] * (a.ndim - 1)) for a in arrays]))
 
 
 def fit_pose(
@@ -324,12 +338,10 @@ def fit_pose(
     hyps = pnp_hypotheses(view, kp_base)
     if extra_poses is not None:
         hyps += list(extra_poses)
-    if not hyps and view.robot_fraction >= MIN_MASK_FRACTION:
-        hyps = sphere_hypotheses(view, robot.surface_points(joints[None])[0])
-    if not hyps:
-        return Fit(np.full((4, 4), np.nan), 0.0, math.inf, -math.inf, view, np.zeros((0, 4, 4)), found=False)
+    hyps += sphere_hypotheses(view, robot.surface_points(joints[None])[0])
     poses = np.stack(hyps)
-    scores = fit_scores(silhouette_ious(renderer, joints, poses, view, SCORE_SIZE), keypoint_errors(poses, kp_base, view), view)
+    ious = silhouette_ious(renderer, joints, poses, view, SCORE_SIZE)
+    scores = fit_scores(ious, keypoint_errors(poses, kp_base, view), view)
     poses = poses[np.argsort(-scores)[:KEEP_HYPOTHESES]]
     if refine:
         poses = refine_poses(renderer, joints, poses, view, kp_base)

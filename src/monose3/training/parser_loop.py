@@ -10,6 +10,7 @@ loses at most a minute) and continues from shards with ``init``.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterator
 from contextlib import nullcontext
@@ -124,8 +125,11 @@ def train_parser(
     workers: int = 0,
     backgrounds: str | Path | None = None,
     progress: bool = True,
+    anneal: bool = False,
 ) -> dict:
-    """Train to ``steps`` or for ``minutes`` (whichever first); returns the last shard metadata."""
+    """Train to ``steps`` or for ``minutes`` (whichever first); returns the last shard metadata.
+    ``anneal``: after the warm-up the learning rate follows a cosine to zero over the budget
+    (the share of ``minutes`` or of the steps spent), for a run that ends a training schedule."""
     if minutes is None and steps is None:
         raise Monose3Error("give the parser's training a budget: --minutes or --steps")
     started = time.perf_counter()
@@ -151,6 +155,10 @@ def train_parser(
             break
         batch = maker.batch(step)
         lr = config.lr * min(1.0, (step - first + 1) / config.warmup_steps)
+        if anneal:
+            spent = (time.perf_counter() - started) / (minutes * 60) if minutes else 0.0
+            spent = max(spent, (step - first) / (steps - first) if steps else 0.0)
+            lr *= 0.5 * (1 + math.cos(math.pi * min(spent, 1.0)))
         for group in optimizer.param_groups:
             group["lr"] = lr * group["scale"]
         with amp():
