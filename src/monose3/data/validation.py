@@ -36,7 +36,7 @@ from monose3.errors import Monose3Error
 from monose3.geometry.camera import Intrinsics, check_K, project
 from monose3.robot import RobotModel
 
-SAMPLERS = ("revdiff", "directreg")
+SAMPLERS = ("fit", "revdiff", "directreg")  # "fit": perception.fitting; the others the paper's
 
 # The smallest image side the network can see a robot in.
 MIN_IMAGE_SIDE = 32

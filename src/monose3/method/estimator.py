@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from monose3.data.validation import check_batch
+from monose3.errors import Monose3Error
 from monose3.geometry.camera import project, standardize_image
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
@@ -24,6 +25,8 @@ from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
 from monose3.method.scheduler import DDIMScheduler
 from monose3.method.update import apply_update, raw_to_update
+from monose3.perception.fitting import Fit, fit_pose, pose_in_view, track_pose
+from monose3.perception.parser import RobotParser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 
@@ -47,6 +50,10 @@ class Estimate:
     spread_deg: np.ndarray  # [B] mean rotation angle of the hypotheses to the chosen one
     history: list[np.ndarray] = field(default_factory=list)  # per step [B, H, 4, 4]
     timings: dict[str, float] = field(default_factory=dict)
+    # The "fit" sampler's (perception.fitting) fit per image; None for the paper's samplers.
+    fit_iou: np.ndarray | None = None  # [B] silhouette IoU of the estimate with the parser's mask
+    keypoint_px: np.ndarray | None = None  # [B] keypoint reprojection error, parser-view pixels
+    found: np.ndarray | None = None  # [B] bool: the parser found the robot (else the pose is NaN)
 
 
 @dataclass
@@ -62,16 +69,23 @@ class PreparedBatch:
 
 
 class PoseEstimator:
-    """A trained denoiser plus the batched renderer on the model's device; call :meth:`estimate` or :meth:`track`."""
+    """A trained denoiser plus the batched renderer on the model's device, and optionally a
+    robot parser (the "fit" sampler, the default when there is one); call :meth:`estimate` or :meth:`track`."""
 
-    def __init__(self, model: Denoiser, config: Config, device: str = "cpu"):
+    def __init__(self, model: Denoiser, config: Config, device: str = "cpu", parser: RobotParser | None = None):
         self.model = model.to(device).eval()
+        self.parser = None if parser is None else parser.to(device).eval()
         self.config = config
         self.device = torch.device(device)
         self.robot = RobotModel(config.robot)
         self.scheduler = DDIMScheduler(config.diffusion)
         self.renderer = RobotRenderer(self.robot, self.device)
         self.timings: dict[str, float] = defaultdict(float)
+
+    @property
+    def default_sampler(self) -> str:
+        """ "fit" (parser + geometry) when the estimator has a parser, else the paper's "revdiff"."""
+        return "fit" if self.parser is not None else "revdiff"
 
     def close(self) -> None:
         """Free the renderer's cached mesh tensors (GPU memory when on CUDA)."""
@@ -153,7 +167,7 @@ class PoseEstimator:
         images: list[np.ndarray],
         Ks: np.ndarray,
         joints: np.ndarray,
-        sampler: str = "revdiff",
+        sampler: str | None = None,
         ddim_steps: int | None = None,
         direct_steps: int | None = None,
         hypotheses: int = 1,
@@ -162,11 +176,16 @@ class PoseEstimator:
         init_poses: np.ndarray | None = None,
         start_t: int | None = None,
     ) -> Estimate:
-        """Estimate camera-from-base for each image. ``sampler``: 'revdiff' (K DDIM + M direct
-        steps, the paper) or 'directreg' (K + M direct steps, the baseline). ``stochastic``
+        """Estimate camera-from-base for each image. ``sampler``: 'fit' (the robot parser, PnP,
+        silhouette scoring and refinement: :mod:`monose3.perception.fitting`; ``init_poses``
+        join its hypotheses), 'revdiff' (K DDIM + M direct steps, the paper) or 'directreg'
+        (K + M direct steps, the baseline); default :attr:`default_sampler`. ``stochastic``
         adds DDIM's noise term and perturbs the initial poses (several chains -> uncertainty).
         ``init_poses`` ``[B, 4, 4]`` replace RoboPose's initialisation (tracking)."""
         images, Ks, joints = check_batch(images, Ks, joints, self.robot)  # Monose3Error, not a crash in roi_align
+        sampler = sampler or self.default_sampler
+        if sampler == "fit":
+            return self.fit(images, Ks, joints, init_poses)
         inf = self.config.inference
         ddim_steps = inf.ddim_steps if ddim_steps is None else ddim_steps
         direct_steps = inf.direct_steps if direct_steps is None else direct_steps
@@ -201,8 +220,65 @@ class PoseEstimator:
         result.timings["total"] = time.perf_counter() - start
         return result
 
-    def track(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, previous: np.ndarray) -> Estimate:
-        """1-step tracking: start from the previous estimates and take one step at a small t."""
+    def fit(
+        self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, priors: np.ndarray | None = None,
+        track: bool = False,
+    ) -> Estimate:  # fmt: skip
+        """The "fit" sampler, image by image (``priors`` ``[B, 4, 4]`` join the hypotheses; with
+        ``track`` they are only refined, from a view around them: tracking)."""
+        if self.parser is None:
+            raise Monose3Error(
+                f"no robot parser for {self.robot.name}: the 'fit' sampler needs one (--parser FILE); "
+                "or use --sampler revdiff"
+            )
+        start = time.perf_counter()
+        fits = []
+        for i, (image, K, q) in enumerate(zip(images, Ks, joints, strict=True)):
+            prior = None if priors is None else np.asarray(priors[i], np.float64)
+            if track:
+                fits.append(track_pose(self.parser, self.renderer, self.robot, image, K, q, prior))
+            else:
+                extra = None if prior is None else prior[None]
+                fits.append(fit_pose(self.parser, self.renderer, self.robot, image, K, q, extra))
+        return self._fit_estimate(fits, images, Ks, joints, time.perf_counter() - start)
+
+    def _fit_estimate(self, fits: list[Fit], images, Ks, joints, seconds: float) -> Estimate:
+        poses = np.stack([f.pose for f in fits])
+        hyps = max(1, max(len(f.candidates) for f in fits))
+        candidates = np.full((len(fits), hyps, 4, 4), np.nan)
+        for i, f in enumerate(fits):
+            candidates[i, : len(f.candidates)] = f.candidates
+        found = np.array([f.found for f in fits])
+        in_view = found & np.array([pose_in_view(self.robot, p, q, K, img.shape) for p, q, K, img in
+                                    zip(poses, joints, Ks, images, strict=True)])  # fmt: skip
+        kp = self.robot.keypoints(np.asarray(joints), np.nan_to_num(candidates[:, 0]))
+        spread = np.zeros(len(fits))
+        for i, f in enumerate(fits):  # the refined runners-up's distance to the estimate
+            if len(f.candidates) > 1:
+                others = self.robot.keypoints(np.repeat(joints[i][None], len(f.candidates) - 1, 0), f.candidates[1:])
+                spread[i] = 1000 * np.linalg.norm(others - kp[i], axis=-1).mean()
+        return Estimate(
+            poses=poses,
+            hypotheses=candidates,
+            in_view=in_view,
+            spread_mm=spread,
+            spread_deg=np.zeros(len(fits)),
+            history=[candidates],
+            timings={"total": seconds},
+            fit_iou=np.array([f.iou for f in fits]),
+            keypoint_px=np.array([f.keypoint_error for f in fits]),
+            found=found,
+        )
+
+    def track(
+        self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, previous: np.ndarray,
+        sampler: str | None = None,
+    ) -> Estimate:  # fmt: skip
+        """Tracking: from the previous estimates, the paper's one step at a small t
+        (``sampler`` 'revdiff'), or a few refinement iterations on a parser view around them ('fit')."""
+        if (sampler or self.default_sampler) == "fit":
+            images, Ks, joints = check_batch(images, Ks, joints, self.robot)
+            return self.fit(images, Ks, joints, np.asarray(previous, np.float64), track=True)
         return self.estimate(
             images,
             Ks,

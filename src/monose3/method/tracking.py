@@ -97,7 +97,8 @@ class Tracker:
         elif policy.reinit_every is not None and self.since_full >= policy.reinit_every:
             reason = REASON_PERIODIC
         else:
-            est = self.estimator.track([image], K, q, self.previous[None])
+            sampler = self.full_kwargs.get("sampler")
+            est = self.estimator.track([image], K, q, self.previous[None], **({"sampler": sampler} if sampler else {}))
             pose = est.poses[0]
             step_mm = keypoint_motion_mm(self.estimator.robot, q[0], self.previous, pose)
             step_deg = float(np.degrees(rotation_angle(self.previous[:3, :3], pose[:3, :3])))

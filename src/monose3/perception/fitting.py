@@ -49,14 +49,17 @@ PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view'
 SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
 KEEP_HYPOTHESES = 4  # refined per image
 REFINE_ITERATIONS = 8
+TRACK_ITERATIONS = 3
 OUTLINE_POINTS = 300  # render outline pixels used per iteration
 OUTLINE_WEIGHT = 7.0  # the outline's total weight in the solve (each keypoint weighs its confidence <= 1)
 OUTLINE_SCALE = 0.015  # Cauchy scale of outline residuals, fraction of the view's width
-KEYPOINT_PENALTY = 2.0
+KEYPOINT_PENALTY = 2.0  # score = IoU - this * (keypoint error / view width)
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
-KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width  # score = IoU - this * (mean keypoint error / view width)
+KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
 CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
-SPHERE_AZIMUTHS, SPHERE_ELEVATIONS, SPHERE_ROLLS = 12, (0.0, 30.0, 60.0), (0.0,)
+SPHERE_AZIMUTHS, SPHERE_ELEVATIONS = 12, (0.0, 30.0, 60.0)
+# The fit flags an estimate unreliable below this IoU (benchmarks/accuracy.py measures what it catches).
+RELIABLE_IOU = 0.9
 
 
 @dataclass
@@ -119,18 +122,23 @@ def full_box(image_size: tuple[int, int], aspect: float) -> np.ndarray:
 
 
 def zoom_box(view: ViewEvidence, aspect: float) -> np.ndarray | None:
-    """The image box around the robot that ``view``'s mask shows (grown by :data:`ZOOM_MARGIN`,
-    at ``aspect``), or None when the robot already fills the view."""
+    """The image box around the robot that ``view``'s mask shows, or None when the robot
+    already fills the view."""
     ys, xs = np.nonzero((view.mask > MASK_THRESHOLD).numpy())
     w, h = view.size
-    lo, hi = np.array([xs.min(), ys.min()], float), np.array([xs.max() + 1, ys.max() + 1], float)
-    half = (hi - lo) / 2 * ZOOM_MARGIN
-    half = np.maximum(half, [half[1] * aspect, half[0] / aspect])
-    if half[0] * 2 > ZOOM_MAX_FRACTION * w:
+    if (xs.max() + 1 - xs.min()) * ZOOM_MARGIN > ZOOM_MAX_FRACTION * w:
         return None
     scale = (view.box[2:] - view.box[:2]) / np.array([w, h])
-    centre = view.box[:2] + (lo + hi) / 2 * scale
-    half = half * scale
+    lo = view.box[:2] + np.array([xs.min(), ys.min()]) * scale
+    hi = view.box[:2] + np.array([xs.max() + 1, ys.max() + 1]) * scale
+    return box_around(lo, hi, aspect)
+
+
+def box_around(lo: np.ndarray, hi: np.ndarray, aspect: float) -> np.ndarray:
+    """The box (edge coordinates) centred on the box ``lo``-``hi``, grown by :data:`ZOOM_MARGIN` and to ``aspect``."""
+    half = (hi - lo) / 2 * ZOOM_MARGIN
+    half = np.maximum(half, [half[1] * aspect, half[0] / aspect])
+    centre = (lo + hi) / 2
     return np.concatenate([centre - half, centre + half])
 
 
@@ -241,9 +249,7 @@ class OutlineTargets:
         if self.empty:
             return
         # distanceTransformWithLabels labels each zero pixel of its input in raster order.
-        _, labels = cv2.distanceTransformWithLabels(
-            1 - outline, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
-        )
+        _, labels = cv2.distanceTransformWithLabels(1 - outline, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
         self.nearest = np.stack([xs, ys], -1).astype(np.float64)[labels - 1]  # [h, w, 2]
 
     def __call__(self, uv: np.ndarray) -> np.ndarray:
@@ -308,6 +314,19 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     return poses
 
 
+def pose_in_view(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> bool:
+    """Whether ``pose`` puts the robot's centroid in front of the camera and inside the image."""
+    if not np.isfinite(pose).all():
+        return False
+    centroid = robot.centroid(robot.surface_points(joints[None]))[0]
+    cam = pose[:3, :3] @ centroid + pose[:3, 3]
+    if cam[2] <= 0:
+        return False
+    u, v = project(cam[None], K)[0]
+    h, w = image_shape[:2]
+    return bool(-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5)
+
+
 def _stack_padded(arrays: list[np.ndarray]) -> torch.Tensor:
     """Rows of different lengths stacked, zero-padded (zero weight: padding does not count)."""
     n = max(len(a) for a in arrays)
@@ -330,7 +349,7 @@ def fit_pose(
     tensor = image_tensor(image)
     view = parse_view(parser, tensor, K, full_box((image.shape[1], image.shape[0]), aspect))
     if view.robot_fraction < MIN_MASK_FRACTION:
-        return Fit(np.full((4, 4), np.nan), 0.0, math.inf, -math.inf, view, np.zeros((0, 4, 4)), found=False)
+        return not_found(view)
     box = zoom_box(view, aspect)
     if box is not None:
         view = parse_view(parser, tensor, K, box)
@@ -351,3 +370,37 @@ def fit_pose(
     order = np.argsort(-scores)
     best = order[0]
     return Fit(poses[best], float(ious[best]), float(errors[best]), float(scores[best]), view, poses[order])
+
+
+def not_found(view: ViewEvidence) -> Fit:
+    return Fit(np.full((4, 4), np.nan), 0.0, math.inf, -math.inf, view, np.zeros((0, 4, 4)), found=False)
+
+
+def track_pose(
+    parser: RobotParser,
+    renderer: RobotRenderer,
+    robot: RobotModel,
+    image: np.ndarray,
+    K: np.ndarray,
+    joints: np.ndarray,
+    previous: np.ndarray,
+) -> Fit:
+    """Tracking: :data:`TRACK_ITERATIONS` refinement iterations from the previous pose, in one
+    parser view around where that pose puts the robot's surface."""
+    size = parser.config.input_size
+    aspect = size[0] / size[1]
+    whole = full_box((image.shape[1], image.shape[0]), aspect)
+    surface = robot.surface_points(joints[None])[0]
+    uv = project(surface @ previous[:3, :3].T + previous[:3, 3], K)
+    box = box_around(uv.min(0), uv.max(0), aspect) if np.isfinite(uv).all() else whole
+    if box[2] - box[0] > whole[2] - whole[0]:
+        box = whole
+    view = parse_view(parser, image_tensor(image), K, box)
+    if view.robot_fraction < MIN_MASK_FRACTION:
+        return not_found(view)
+    kp_base = robot.keypoints(joints[None])[0]
+    poses = refine_poses(renderer, joints, previous[None], view, kp_base, TRACK_ITERATIONS)
+    iou = silhouette_ious(renderer, joints, poses, view, view.size)
+    error = keypoint_errors(poses, kp_base, view)
+    score = fit_scores(iou, error, view)
+    return Fit(poses[0], float(iou[0]), float(error[0]), float(score[0]), view, poses)

@@ -38,6 +38,15 @@ class ParserConfig:
     seed: int = 0
 
 
+PARSER_KIND = "robot-parser"  # the ``kind`` of a parser's weight files
+
+
+def parser_config(data: dict) -> ParserConfig:
+    """A :class:`ParserConfig` from its saved dictionary (JSON turns tuples into lists)."""
+    known = {f for f in ParserConfig.__dataclass_fields__}
+    return ParserConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k in known})
+
+
 PARSER_PRESETS = {"cpu": ParserConfig(), "gpu": ParserConfig(batch_size=96, lr=2e-3, warmup_steps=300)}
 
 

@@ -12,6 +12,7 @@ import torch
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, Config
 from monose3.method.denoiser import Denoiser
+from monose3.perception.parser import PARSER_KIND, RobotParser, parser_config
 from monose3.training.formats import CHECKPOINT_FORMAT as FORMAT
 
 
@@ -98,4 +99,39 @@ def export_model(checkpoint: str | Path, out: str | Path, half: bool = True) -> 
     weights = {k: (v.half() if half and v.is_floating_point() else v) for k, v in state["model"].items()}
     slim = {"model": weights, "config": state["config"], "robot": state["config"]["robot"], "step": state["step"]}
     save_checkpoint(out, slim)
+    return Path(out)
+
+
+def load_parser(path: str | Path, device: str = "cpu") -> RobotParser:
+    """A robot parser (:mod:`monose3.perception.parser`), in eval mode, from the file
+    :func:`export_parser` writes or from a training run's shard folder."""
+    from monose3.training.shards import is_shard_set, read_shards
+
+    path = Path(path)
+    if not path.exists():
+        raise Monose3Error(f"robot parser weights not found: {path}; pass --parser FILE or reinstall monose3")
+    if is_shard_set(path):
+        state, meta = read_shards(path)
+    else:
+        meta = read_checkpoint(path)
+        state = meta["model"]
+    if meta.get("kind") != PARSER_KIND or not isinstance(meta.get("parser"), dict):
+        raise Monose3Error(f"{path} holds no robot parser (a denoiser checkpoint?); pass the parser's weights")
+    config = parser_config(meta["parser"])
+    model = RobotParser(config, pretrained=False)
+    try:
+        model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
+    except RuntimeError as err:
+        raise Monose3Error(f"{path}: weights do not fit the robot parser ({str(err)[:120]})") from None
+    return model.to(device).eval()
+
+
+def export_parser(shards: str | Path, out: str | Path) -> Path:
+    """A shippable fp16 file of a parser's training shards (what the package bundles)."""
+    from monose3.training.shards import read_shards
+
+    state, meta = read_shards(shards)
+    weights = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
+    keep = {k: meta[k] for k in ("kind", "parser", "step", "samples")}
+    save_checkpoint(out, {"model": weights, "robot": meta["parser"]["robot"], **keep})
     return Path(out)

@@ -15,6 +15,8 @@ from monose3.robot import get_spec, robot_reference
 CHECKPOINT_FORMAT = "monose3-checkpoint-v1"
 SHARD_INDEX = "weights.json"  # the index file of a shard set (monose3.training.shards)
 BUNDLED_CHECKPOINT = Path(__file__).resolve().parent.parent / "assets" / "panda_cpu.pt"
+BUNDLED_PARSER = BUNDLED_CHECKPOINT.with_name("panda_parser.pt")  # the robot parser (perception.parser)
+BUNDLED_PARSER_ROBOT = "panda"
 
 
 class _PeekUnpickler(pickle.Unpickler):

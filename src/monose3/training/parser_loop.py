@@ -25,15 +25,22 @@ from tqdm import tqdm
 
 from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
-from monose3.perception.parser import OUTPUT_STRIDE, ParserConfig, RobotParser, keypoint_loss, mask_loss
+from monose3.perception.parser import (
+    OUTPUT_STRIDE,
+    PARSER_KIND,
+    ParserConfig,
+    RobotParser,
+    keypoint_loss,
+    mask_loss,
+)
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
+from monose3.training.checkpoints import load_parser, read_checkpoint
 from monose3.training.logs import CsvTensorBoardLog
 from monose3.training.samples import GlobalSampleSampler, step_generator
-from monose3.training.shards import read_shards, write_shards
+from monose3.training.shards import is_shard_set, read_shards, write_shards
 from monose3.training.synthetic import SceneDataset, load_photos, synthesize_images
 
-PARSER_KIND = "robot-parser"
 TRAIN_PROFILES = ("train", "reallike", "hard")
 PARSER_LOG_FIELDS = ["step", "samples", "lr", "mask", "keypoints", "samples_per_s"]
 TRUNK_LR_SCALE = 0.3  # the pretrained trunk moves slower than the fresh decoder
@@ -102,20 +109,6 @@ def _optimizer(model: RobotParser, config: ParserConfig) -> torch.optim.Optimize
     return torch.optim.AdamW(groups, lr=config.lr, weight_decay=1e-4)
 
 
-def load_parser_weights(path: str | Path) -> tuple[RobotParser, dict]:
-    """A parser and its metadata from a shard folder (or its ``weights.json``) written by :func:`train_parser`."""
-    state, meta = read_shards(path)
-    if meta.get("kind") != PARSER_KIND:
-        raise Monose3Error(f"{path} holds no robot parser weights (kind {meta.get('kind')!r}); pass a parser's shards")
-    config = ParserConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in meta["parser"].items()})
-    model = RobotParser(config, pretrained=False)
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as err:
-        raise Monose3Error(f"{path}: weights do not fit the parser ({str(err)[:120]})") from None
-    return model, meta
-
-
 def train_parser(
     config: ParserConfig,
     out: str | Path,
@@ -138,7 +131,8 @@ def train_parser(
     out = Path(out)
     step = samples = 0
     if init is not None:
-        model, meta = load_parser_weights(init)
+        model = load_parser(init).train()
+        _, meta = read_shards(init) if is_shard_set(init) else (None, read_checkpoint(init))
         step, samples = int(meta["step"]), int(meta["samples"])
     else:
         model = RobotParser(config)
