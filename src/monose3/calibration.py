@@ -38,6 +38,7 @@ from monose3.geometry.averaging import (
 )
 from monose3.geometry.rotations import matrix_to_quat_xyzw
 from monose3.method.estimator import UNRELIABLE_MM
+from monose3.perception.fitting import RELIABLE_IOU
 from monose3.report.metrics import add_per_frame
 from monose3.report.overlays import image_grid, pose_overlays
 from monose3.robot import RobotModel
@@ -48,6 +49,7 @@ OVERLAY_TILE_WIDTH = 480
 
 REASON_OUT_OF_VIEW = "out of view"
 REASON_UNRELIABLE = "unreliable chains"
+REASON_POOR_FIT = "poor silhouette fit"
 REASON_CONSENSUS = "far from consensus"
 
 
@@ -69,6 +71,7 @@ class FrameResult:
     in_view: bool
     chain_spread_mm: float
     chain_spread_deg: float
+    fit_iou: float | None = None  # the "fit" sampler's silhouette IoU (None for the paper's samplers)
     residual_mm: float = float("nan")  # translation distance to the fused pose
     residual_deg: float = float("nan")  # rotation angle to the fused pose
     used: bool = False
@@ -84,6 +87,7 @@ class FrameResult:
             "residual_mm": _num(self.residual_mm),
             "residual_deg": _num(self.residual_deg),
             "in_view": self.in_view,
+            "silhouette_iou": self.fit_iou,
             "chain_spread_mm": _num(self.chain_spread_mm),
             "chain_spread_deg": _num(self.chain_spread_deg),
             "add_single_mm": _num(self.add_single_mm),
@@ -187,6 +191,7 @@ def calibrate(
     min_threshold_deg: float = CONSENSUS_MIN_DEG,
     unreliable_mm: float = UNRELIABLE_MM,
     progress: bool = False,
+    sampler: str | None = None,
 ) -> CalibrationResult:
     """Fuse the estimates of ``frames`` (all seen by one static camera) into one extrinsic.
 
@@ -201,7 +206,7 @@ def calibrate(
         raise Monose3Error(f"chains and batch size must be at least 1, got {chains} and {batch_size}")
     start = time.perf_counter()
     skipped = skipped_annotations(frames)
-    usable, results = estimate_frames(estimator, frames, chains, batch_size, seed, skipped, progress)
+    usable, results = estimate_frames(estimator, frames, chains, batch_size, seed, skipped, progress, sampler)
     if not results:
         first = skipped[0] if skipped else {"frame": "-", "reason": "-"}
         raise Monose3Error(
@@ -231,7 +236,14 @@ def calibrate(
 
 
 def estimate_frames(
-    estimator, frames: Sequence, chains: int, batch_size: int, seed: int, skipped: list[dict], progress: bool
+    estimator,
+    frames: Sequence,
+    chains: int,
+    batch_size: int,
+    seed: int,
+    skipped: list[dict],
+    progress: bool,
+    sampler: str | None = None,
 ) -> tuple[list, list[FrameResult]]:
     """Single-frame estimates of every readable frame, ``batch_size`` at a time; unreadable
     frames are appended to ``skipped``. Returns the frames used and their results."""
@@ -251,6 +263,7 @@ def estimate_frames(
                 images,
                 np.stack([np.asarray(f.K, np.float64) for f in batch]),
                 np.stack([np.asarray(f.joints, np.float64) for f in batch]),
+                sampler=sampler,
                 hypotheses=chains,
                 stochastic=chains > 1,
                 seed=seed + b,
@@ -268,8 +281,9 @@ def _frame_result(frame, est, j: int, chains: int) -> FrameResult:
         name=str(frame.name),
         camera_from_base=np.asarray(est.poses[j], np.float64),
         in_view=bool(est.in_view[j]),
-        chain_spread_mm=float(est.spread_mm[j]) if chains > 1 else float("nan"),
-        chain_spread_deg=float(est.spread_deg[j]) if chains > 1 else float("nan"),
+        chain_spread_mm=float(est.spread_mm[j]) if chains > 1 and est.fit_iou is None else float("nan"),
+        chain_spread_deg=float(est.spread_deg[j]) if chains > 1 and est.fit_iou is None else float("nan"),
+        fit_iou=None if est.fit_iou is None else float(est.fit_iou[j]),
     )
 
 
@@ -279,6 +293,8 @@ def reject_unusable(results: list[FrameResult], chains: int, unreliable_mm: floa
     for r in results:
         if not r.in_view or not np.all(np.isfinite(r.camera_from_base)):
             r.reason = REASON_OUT_OF_VIEW
+        elif r.fit_iou is not None and r.fit_iou < RELIABLE_IOU:
+            r.reason = REASON_POOR_FIT
         elif chains > 1 and r.chain_spread_mm > unreliable_mm:
             r.reason = REASON_UNRELIABLE
     candidates = [i for i, r in enumerate(results) if r.reason is None]

@@ -24,9 +24,11 @@ from monose3.apps.dataset_arguments import (  # noqa: F401 - every command's opt
 from monose3.apps.options import (
     CHECKPOINT_HELP,
     DEVICE_HELP,
+    PARSER_HELP,
     ROBOT_HELP,
     add_model_arguments,
     check_non_negative,
+    check_parser_file,
     robot_model,
 )
 from monose3.data import validation as v
@@ -59,13 +61,6 @@ def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
         help="folder for pose.json, pose.yaml and overlay.png (default: monose3_out; created if missing)",
     )
     p.add_argument(
-        "--sampler",
-        choices=["revdiff", "directreg"],
-        default="revdiff",
-        help="revdiff: DDIM reverse diffusion then direct steps (the paper, default); directreg: direct "
-        "regression steps only (the baseline)",
-    )
-    p.add_argument(
         "--prior",
         help="approximate camera-from-base to refine, in metres (pose.json/calibration.json written by monose3, "
         "or a 4x4 list)",
@@ -76,7 +71,7 @@ def check_estimate(args: argparse.Namespace) -> SimpleNamespace:
     from monose3.data.inputs import load_camera, load_image, load_pose
 
     chains = v.check_chains(args.chains, "--chains")
-    v.check_sampler(args.sampler)
+    check_parser_file(args.parser)
     out = v.check_output_dir(args.out, "--out")
     robot = robot_model(check_checkpoint(args.checkpoint, args.robot))
     image = v.check_image(load_image(args.image), args.image)
@@ -144,6 +139,7 @@ def check_calibrate(args: argparse.Namespace) -> SimpleNamespace:
     from monose3.data.frames import load_frames
 
     chains = v.check_chains(args.chains, "--chains")
+    check_parser_file(args.parser)
     v.check_count(args.batch_size, "--batch-size")
     if args.limit is not None:
         v.check_count(args.limit, "--limit")
@@ -173,7 +169,14 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     jsrc.add_argument("--joints", help="with --video: folder with one joints JSON per frame (name order)")
     p.add_argument("--camera", help="with --video: intrinsics file (JSON {fx, fy, cx, cy, width, height}, ...)")
     p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
+    p.add_argument("--parser", help=PARSER_HELP)
     p.add_argument("--robot", help=ROBOT_HELP)
+    p.add_argument(
+        "--sampler",
+        choices=["fit", "revdiff"],
+        help="fit: refinement on the robot parser's mask and keypoints each frame (default where there is a parser); "
+        "revdiff: the paper's one step at a small t",
+    )
     p.add_argument(
         "--out",
         default="monose3_track",
@@ -215,6 +218,7 @@ def check_track_args(args: argparse.Namespace) -> None:
 
 def check_track(args: argparse.Namespace) -> SimpleNamespace:
     check_track_args(args)
+    check_parser_file(args.parser)
     out = v.check_output_dir(args.out, "--out")
     robot = check_checkpoint(args.checkpoint, args.robot)
     frames = video_joints = None

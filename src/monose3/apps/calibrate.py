@@ -126,7 +126,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from monose3.apps.arguments import check_calibrate
 
     checked = getattr(args, "checked_inputs", None) or check_calibrate(args)  # inputs read before the model loads
-    estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
+    estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device, parser=args.parser)
     try:
         frames = checked.frames
         if frames is None:
@@ -140,6 +140,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             consensus_k=args.consensus_k,
             progress=True,
+            sampler=args.sampler,
         )
         grid = overlay_grid(estimator, frames, result, args.overlay_frames) if args.overlay_frames > 0 else None
     finally:

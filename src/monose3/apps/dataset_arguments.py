@@ -9,9 +9,12 @@ from types import SimpleNamespace
 
 from monose3.apps.options import (
     CHECKPOINT_HELP,
+    PARSER_HELP,
     PLOT_SUFFIXES,
     ROBOT_FILE_HELP,
+    SAMPLER_HELP,
     check_non_negative,
+    check_parser_file,
     parse_size,
 )
 from monose3.data import validation as v
@@ -194,12 +197,12 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
 def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", nargs="+", required=True, help="DREAM folders or RoboKeyGen sequences")
     p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
+    p.add_argument("--parser", help=PARSER_HELP)
     p.add_argument(
         "--sampler",
-        choices=["revdiff", "directreg", "tracking"],
-        default="revdiff",
-        help="revdiff: DDIM reverse diffusion then direct steps (default); directreg: direct steps only; tracking: "
-        "the full process on the first frame, then one step per frame from the previous estimate",
+        choices=[*v.SAMPLERS, "tracking", "fit-tracking"],
+        help=SAMPLER_HELP + "; tracking: revdiff on the first frame, then the paper's one step per frame from the "
+        "previous estimate; fit-tracking: the same with fit and its refinement",
     )
     p.add_argument("--steps", type=int, nargs=2, metavar=("K", "M"), help="DDIM steps and direct steps (default 5 5)")
     p.add_argument("--batch-size", type=int, default=4, help="frames estimated together (default 4)")
@@ -212,6 +215,7 @@ def add_evaluate_arguments(p: argparse.ArgumentParser) -> None:
 
 def check_evaluate(args: argparse.Namespace) -> SimpleNamespace:
     v.check_count(args.batch_size, "--batch-size")
+    check_parser_file(args.parser)
     if args.limit is not None:
         v.check_count(args.limit, "--limit")
     if args.steps is not None:

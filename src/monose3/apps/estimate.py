@@ -14,7 +14,7 @@ def run_estimate(args: argparse.Namespace) -> int:
     from monose3.apps.arguments import check_estimate
 
     inputs = getattr(args, "checked_inputs", None) or check_estimate(args)  # all of it before the model loads
-    estimator = load_estimator(args.checkpoint, robot=args.robot)
+    estimator = load_estimator(args.checkpoint, robot=args.robot, parser=args.parser)
     try:
         joints = inputs.joints if inputs.joints is not None else validation.check_joints(args.joints, estimator.robot)
         result = estimate_pose(

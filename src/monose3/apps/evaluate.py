@@ -26,6 +26,9 @@ from monose3.report.overlays import denoising_strip
 from monose3.report.plots import plot_add_distribution
 from monose3.robot.jobs import RenderJob
 
+# evaluate --sampler tracking / fit-tracking: the sampler of their full estimates.
+TRACKING_SAMPLERS = {"tracking": "revdiff", "fit-tracking": "fit"}
+
 
 @dataclass
 class DatasetResult:
@@ -51,7 +54,7 @@ def evaluate_dataset(
     estimator: PoseEstimator,
     frames: Sequence,
     name: str,
-    sampler: str = "revdiff",
+    sampler: str | None = None,
     ddim_steps: int | None = None,
     direct_steps: int | None = None,
     batch_size: int = 4,
@@ -126,6 +129,8 @@ def frame_record(frame, add: float, est: Estimate, j: int, step: TrackStep | Non
         "camera_from_base": est.poses[j].tolist(),
         "in_view": bool(est.in_view[j]),
     }
+    if est.fit_iou is not None:
+        record.update(silhouette_iou=float(est.fit_iou[j]), keypoint_px=float(est.keypoint_px[j]))
     if step is not None:
         record.update(mode=step.mode, reason=step.reason)
     return record
@@ -169,7 +174,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from monose3.data.datasets import open_dataset
 
     checked = getattr(args, "checked_inputs", None) or check_evaluate(args)
-    estimator = load_estimator(args.checkpoint)
+    estimator = load_estimator(args.checkpoint, parser=args.parser)
     k, m = args.steps if args.steps else (None, None)
     results = []
     try:
@@ -180,14 +185,14 @@ def run_evaluate(args: argparse.Namespace) -> int:
                     estimator,
                     frames,
                     Path(d).name,
-                    sampler="revdiff" if args.sampler == "tracking" else args.sampler,
+                    sampler=TRACKING_SAMPLERS.get(args.sampler, args.sampler),
                     ddim_steps=k,
                     direct_steps=m,
                     batch_size=args.batch_size,
                     limit=args.limit,
                     overlay_frames=args.overlay_frames if args.overlays else (),
                     overlay_dir=Path(args.overlays) if args.overlays else None,
-                    tracking=args.sampler == "tracking",
+                    tracking=args.sampler in TRACKING_SAMPLERS,
                 )
             )
     finally:

@@ -9,6 +9,11 @@ from monose3.data import validation as v
 CHECKPOINT_HELP = "model checkpoint file (.pt; default: the bundled Panda model)"
 ROBOT_HELP = "robot the checkpoint must be for: panda, kuka or a robot file robot.json (checked before loading)"
 ROBOT_FILE_HELP = 'a robot file: {"urdf": "arm.urdf", "keypoints": [{"name", "link", "offset"}]}'
+PARSER_HELP = "robot parser weights (.pt; default: the bundled Panda parser for the Panda, none for other robots)"
+SAMPLER_HELP = (
+    "fit: the robot parser's mask and keypoints, PnP, silhouette search and refinement (the default where there is "
+    "a parser); revdiff: DDIM reverse diffusion then direct steps (the paper); directreg: direct steps only"
+)
 DEVICE_HELP = "where the network runs: cpu, cuda or auto (the default: cuda when available)"
 PLOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")
 
@@ -36,7 +41,21 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def add_model_arguments(p: argparse.ArgumentParser, chains: int, chains_help: str) -> None:
-    """``--checkpoint``, ``--robot`` and ``--chains``, as every command that estimates takes them."""
+    """The options every estimating command takes: checkpoint, parser, robot, sampler, chains."""
     p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
+    p.add_argument("--parser", help=PARSER_HELP)
     p.add_argument("--robot", help=ROBOT_HELP)
-    p.add_argument("--chains", type=int, default=chains, help=f"{chains_help} (default {chains})")
+    p.add_argument("--sampler", choices=list(v.SAMPLERS), help=SAMPLER_HELP)
+    p.add_argument(
+        "--chains", type=int, default=chains, help=f"{chains_help}; revdiff/directreg only (default {chains})"
+    )
+
+
+def check_parser_file(path: str | None) -> None:
+    """A ``--parser`` that does not exist is refused before any model loads."""
+    from pathlib import Path
+
+    from monose3.errors import Monose3Error
+
+    if path is not None and not Path(path).exists():
+        raise Monose3Error(f"robot parser weights not found: {path}; pass an existing file or omit --parser")

@@ -95,6 +95,7 @@ def track_sequence(
     policy: TrackingPolicy | None = None,
     on_frame: Callable[[object, np.ndarray, TrackFrame], None] | None = None,
     skipped: list[dict] | None = None,
+    sampler: str | None = None,
 ) -> list[TrackFrame]:
     """Track the camera-from-base pose over ``frames_iter`` (objects with ``name``, ``K``,
     ``joints``, ``load_image()``; with ``keypoints_3d`` the ADD is filled in) with the shared
@@ -106,7 +107,7 @@ def track_sequence(
     appended to ``skipped`` as ``{"frame", "reason"}``.
     """
     skipped = [] if skipped is None else skipped
-    tracker = Tracker(estimator, policy)
+    tracker = Tracker(estimator, policy, **({"sampler": sampler} if sampler else {}))
     robot: RobotModel = estimator.robot
     out: list[TrackFrame] = []
     for index, frame in enumerate(frames_iter):
@@ -289,7 +290,7 @@ def run_track(args: argparse.Namespace) -> int:
     from monose3.apps.arguments import check_track
 
     checked = getattr(args, "checked_inputs", None) or check_track(args)  # inputs checked before the model loads
-    estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device)
+    estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device, parser=args.parser)
     out = checked.out
     tiles: list[np.ndarray] = []
     skipped: list[dict] = []
@@ -325,7 +326,9 @@ def run_track(args: argparse.Namespace) -> int:
                     tiles.append(overlay_tile(estimator, frame, image, result))
 
             policy = TrackingPolicy(args.max_step_mm, args.max_step_deg, args.reinit_every)
-            results = track_sequence(estimator, frames, policy, on_frame=on_frame, skipped=skipped)
+            results = track_sequence(
+                estimator, frames, policy, on_frame=on_frame, skipped=skipped, sampler=args.sampler
+            )
     finally:
         estimator.close()
     written = [jsonl_path, csv_path]
