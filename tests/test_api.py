@@ -45,6 +45,8 @@ def _estimate(d, *extra, image="image.jpg", joints="joints.json", camera="camera
             str(d / "out"),
             "--chains",
             "2",
+            "--sampler",  # the tiny checkpoints exercise the paper's sampler; test_fit_* the default
+            "revdiff",
             *extra,
         ]
     )
@@ -67,7 +69,7 @@ def test_python_api_mirrors_the_cli(scene, tmp_path):
     d, frame = scene
     est = load_estimator(d / "panda.pt")
     try:
-        result = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=2)
+        result = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=2, sampler="revdiff")
     finally:
         est.close()
     assert result.camera_from_base.shape == (4, 4) and 0 <= result.confidence <= 1
@@ -148,8 +150,9 @@ def test_prior_is_refined_instead_of_robopose_start(scene):
     d, frame = scene
     est = load_estimator(d / "panda.pt")
     try:
-        with_prior = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=1, prior=frame.pose)
-        without = estimate_pose(est, frame.load_image(), frame.joints, frame.K, chains=1)
+        image = frame.load_image()
+        with_prior = estimate_pose(est, image, frame.joints, frame.K, chains=1, prior=frame.pose, sampler="revdiff")
+        without = estimate_pose(est, image, frame.joints, frame.K, chains=1, sampler="revdiff")
     finally:
         est.close()
     assert np.allclose(with_prior.estimate.history[0][0, 0], frame.pose)

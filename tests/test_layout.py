@@ -2,7 +2,7 @@
 
 Layers, lowest first; a module may import its own layer and the layers below it:
 
-    base (errors.py, atomic.py) <- geometry <- robot <- data <- method <- training / report
+    base (errors.py, atomic.py) <- geometry <- robot <- data <- method / perception <- training / report
     <- apps (with api.py, __init__.py, __main__.py beside it)
 
 Within apps/, a command module (an ``apps/*.py`` with a ``run_<name>`` function) never imports
@@ -31,7 +31,7 @@ LAYERS = (
     ("geometry",),
     ("robot",),
     ("data",),
-    ("method",),
+    ("method", "perception"),
     ("training", "report"),
     ("apps", "api", "calibration", "__init__", "__main__"),
 )

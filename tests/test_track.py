@@ -181,7 +181,8 @@ def test_tracker_passes_full_estimate_options_and_refuses_a_bad_period(models):
 
 def test_track_cli_on_dream_folder(dream_dir, checkpoint, tmp_path, capsys):
     out = tmp_path / "out"
-    rc = main(["track", "--frames", str(dream_dir), "--checkpoint", str(checkpoint), "--out", str(out)])
+    argv = ["track", "--frames", str(dream_dir), "--checkpoint", str(checkpoint), "--sampler", "revdiff"]
+    rc = main([*argv, "--out", str(out)])
     assert rc == 0
     printed = capsys.readouterr().out
     assert "ADD vs ground truth" in printed and f"frames: {N}; full: 1 (1 first); track: {N - 1}" in printed
@@ -217,7 +218,7 @@ def test_track_cli_on_video_with_joints_csv(sequence, models, checkpoint, tmp_pa
     video, csv_path, camera = write_video_inputs(tmp_path, sequence, models)
     out = tmp_path / "out"
     argv = ["track", "--video", str(video), "--joints-csv", str(csv_path), "--camera", str(camera)]
-    rc = main([*argv, "--checkpoint", str(checkpoint), "--out", str(out), "--gif-every", "2"])
+    rc = main([*argv, "--checkpoint", str(checkpoint), "--sampler", "revdiff", "--out", str(out), "--gif-every", "2"])
     assert rc == 0
     lines = [json.loads(line) for line in (out / "poses.jsonl").read_text().splitlines()]
     assert [d["frame"] for d in lines] == [f"f{i}" for i in range(N)]

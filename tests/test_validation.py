@@ -164,7 +164,8 @@ def test_every_documented_joint_layout_is_accepted(base, estimator, layout, via,
         (tmp_path / "x.joints.json").write_text(json.dumps(data))
         (tmp_path / "prior.json").write_text(json.dumps({"camera_from_base": frame.pose.tolist()}))
         args += ["--prior", str(tmp_path / "prior.json")]
-        assert main(["estimate", *args, "--checkpoint", str(d / "panda.pt"), "--out", str(tmp_path / "o")]) == 0
+        argv = ["estimate", *args, "--checkpoint", str(d / "panda.pt"), "--sampler", "revdiff"]
+        assert main([*argv, "--out", str(tmp_path / "o")]) == 0
         pose = np.asarray(json.loads((tmp_path / "o" / "pose.json").read_text())["camera_from_base"])
     assert pose.shape == (4, 4) and np.isfinite(pose).all()
 
@@ -202,11 +203,13 @@ def test_estimator_entry_points_refuse_nan_joints_instead_of_crashing(base, esti
 def test_one_chain_gives_null_confidence_never_nan(base, estimator, via, tmp_path, capsys):
     d, frame = base
     if via == "api":
-        result = estimate_pose(estimator, frame.load_image(), frame.joints, frame.K, chains=1, prior=frame.pose)
+        image = frame.load_image()
+        result = estimate_pose(estimator, image, frame.joints, frame.K, chains=1, prior=frame.pose, sampler="revdiff")
         text = json.dumps(result.to_dict(), allow_nan=False)
     else:
         args = _write_cli_files(tmp_path, {**_inputs(frame, "good"), "chains": 1, "prior": frame.pose}, "x")
-        assert main(["estimate", *args, "--checkpoint", str(d / "panda.pt"), "--out", str(tmp_path / "o")]) == 0
+        argv = ["estimate", *args, "--checkpoint", str(d / "panda.pt"), "--sampler", "revdiff"]
+        assert main([*argv, "--out", str(tmp_path / "o")]) == 0
         assert "nan" not in capsys.readouterr().out.lower()
         text = (tmp_path / "o" / "pose.json").read_text()
 
@@ -344,7 +347,7 @@ def test_unreadable_frames_are_skipped_named_and_fatal_only_when_none_is_left(
         "evaluate": ["evaluate", "--data", str(d), "--steps", "1", "0", "--json", str(out / "r.json")],
         "calibrate": ["calibrate", "--frames", str(d), "--out", str(out), "--overlay-frames", "2"],
         "track": ["track", "--frames", str(d), "--out", str(out), "--gif-every", "0"],
-    }[command] + ["--checkpoint", ck]
+    }[command] + ["--checkpoint", ck, "--sampler", "revdiff"]
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert f"skipped 1 unusable frame(s): {bad}" in printed

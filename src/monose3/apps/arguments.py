@@ -17,9 +17,11 @@ from monose3.apps.dataset_arguments import (  # noqa: F401 - every command's opt
     add_evaluate_arguments,
     add_generate_arguments,
     add_train_arguments,
+    add_train_parser_arguments,
     check_evaluate,
     check_generate,
     check_train,
+    check_train_parser,
 )
 from monose3.apps.options import (
     CHECKPOINT_HELP,
@@ -251,5 +253,9 @@ COMMANDS = {
     "track": ("monose3.apps.track", "track the pose over a sequence of frames or a video"),
     "generate": ("monose3.apps.generate", "generate domain-randomised synthetic data in DREAM format"),
     "train": ("monose3.apps.train", "train the denoising network on DREAM folders or scenes synthesised on the fly"),
+    "train-parser": (
+        "monose3.apps.train_parser",
+        "train the robot parser (mask + keypoints) on scenes synthesised on the fly",
+    ),
     "evaluate": ("monose3.apps.evaluate", "evaluate a checkpoint on DREAM / RoboKeyGen data (ADD, AUC)"),
 }

@@ -33,17 +33,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (_, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text[0].upper() + help_text[1:] + ".")
-        getattr(commands, f"add_{name}_arguments")(p)
+        getattr(commands, f"add_{name.replace('-', '_')}_arguments")(p)
     return parser
 
 
 def _run(args: argparse.Namespace) -> int:
     from monose3.apps import arguments as commands
 
-    checked = getattr(commands, f"check_{args.command}")(args)  # before torch / pybullet are imported
+    name = args.command.replace("-", "_")
+    checked = getattr(commands, f"check_{name}")(args)  # before torch / pybullet are imported
     args.checked_inputs = checked
     module = importlib.import_module(COMMANDS[args.command][0])
-    return getattr(module, f"run_{args.command}")(args)
+    return getattr(module, f"run_{name}")(args)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -48,7 +48,8 @@ class MBConv(nn.Module):
     def __init__(self, c_in: int, c_out: int, kernel: int, stride: int, expand: int):
         super().__init__()
         mid = c_in * expand
-        if expand != 1:
+        self.expands = expand != 1
+        if self.expands:
             self._expand_conv = SameConv2d(c_in, mid, 1, bias=False)
             self._bn0 = _bn(mid)
         self._depthwise_conv = SameConv2d(mid, mid, kernel, stride, groups=mid, bias=False)
@@ -58,7 +59,7 @@ class MBConv(nn.Module):
         self.residual = stride == 1 and c_in == c_out
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = F.relu6(self._bn0(self._expand_conv(x))) if hasattr(self, "_expand_conv") else x
+        y = F.relu6(self._bn0(self._expand_conv(x))) if self.expands else x
         y = F.relu6(self._bn1(self._depthwise_conv(y)))
         y = self._bn2(self._project_conv(y))
         return x + y if self.residual else y
@@ -96,6 +97,10 @@ class EfficientNetLite0(nn.Module):
             if i in taps:
                 out.append(x)
         return out
+
+    def drop_classifier(self) -> None:
+        """Remove the ImageNet head (1280-channel conv and classifier): a trunk needs :meth:`features` only."""
+        del self._conv_head, self._bn1, self._fc
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         x = self._stem(image)

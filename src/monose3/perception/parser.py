@@ -9,45 +9,15 @@ keypoint, logits of a spatial softmax (where the keypoint is).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from monose3.perception.backbone import FEATURE_CHANNELS, EfficientNetLite0, pretrained_lite0
+from monose3.perception.config import ParserConfig
 
 OUTPUT_STRIDE = 2
 PEAK_RADIUS = 2  # cells around a heatmap's peak that its sub-cell position is averaged over
-
-
-@dataclass(frozen=True)
-class ParserConfig:
-    """The parser's network and training. ``input_size`` (w, h): every image is brought to it
-    (zero-padded to 4:3 and resized, as the estimator's standardised image)."""
-
-    robot: str = "panda"
-    input_size: tuple[int, int] = (320, 240)
-    num_keypoints: int = 7
-    decoder_width: int = 48
-    batch_size: int = 16
-    lr: float = 1e-3
-    warmup_steps: int = 200
-    keypoint_sigma: float = 1.0  # output cells: the Gaussian the keypoint target spreads over
-    keypoint_weight: float = 1.0
-    seed: int = 0
-
-
-PARSER_KIND = "robot-parser"  # the ``kind`` of a parser's weight files
-
-
-def parser_config(data: dict) -> ParserConfig:
-    """A :class:`ParserConfig` from its saved dictionary (JSON turns tuples into lists)."""
-    known = {f for f in ParserConfig.__dataclass_fields__}
-    return ParserConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k in known})
-
-
-PARSER_PRESETS = {"cpu": ParserConfig(), "gpu": ParserConfig(batch_size=96, lr=2e-3, warmup_steps=300)}
 
 
 def _conv(c_in: int, c_out: int) -> nn.Sequential:
@@ -62,7 +32,7 @@ class RobotParser(nn.Module):
         super().__init__()
         self.config = config
         self.trunk = pretrained_lite0() if pretrained else EfficientNetLite0()
-        del self.trunk._conv_head, self.trunk._bn1, self.trunk._fc  # the classifier is not used
+        self.trunk.drop_classifier()
         width = config.decoder_width
         deep = FEATURE_CHANNELS[::-1]  # 320 (s32), 112, 40, 24, 16 (s2)
         self.top = _conv(deep[0], width)

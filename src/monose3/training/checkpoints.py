@@ -12,7 +12,8 @@ import torch
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, Config
 from monose3.method.denoiser import Denoiser
-from monose3.perception.parser import PARSER_KIND, RobotParser, parser_config
+from monose3.perception.config import PARSER_KIND, parser_config
+from monose3.perception.parser import RobotParser
 from monose3.training.formats import CHECKPOINT_FORMAT as FORMAT
 
 

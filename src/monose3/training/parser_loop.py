@@ -25,14 +25,8 @@ from tqdm import tqdm
 
 from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
-from monose3.perception.parser import (
-    OUTPUT_STRIDE,
-    PARSER_KIND,
-    ParserConfig,
-    RobotParser,
-    keypoint_loss,
-    mask_loss,
-)
+from monose3.perception.config import PARSER_KIND, ParserConfig
+from monose3.perception.parser import OUTPUT_STRIDE, RobotParser, keypoint_loss, mask_loss
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import load_parser, read_checkpoint

@@ -1,0 +1,185 @@
+"""Accuracy of the default pipeline ("fit") and its stages on held-out sets, and what it costs.
+
+Rows (one per stage, each adding to the one above): the paper's reverse diffusion alone
+(RevDiff, 5 DDIM + 5 direct steps); the robot parser with PnP (hypotheses scored by silhouette
+IoU, no sphere search, no refinement); + the coarse search over the sphere; + the silhouette
+and keypoint refinement (the default). Per row and set: AUC of ADD (0-100 mm), median ADD, CPU
+seconds per image (with the stages' split for the default). Then:
+
+* refinement from the true pose moved by ``--start-deg`` / ``--start-cm`` (a random axis and
+  direction): the share of frames that end closer than they started, start and final medians;
+* the ``reliable`` flag (silhouette IoU >= RELIABLE_IOU) against ADD > ``--bad-mm``: recall of
+  the bad estimates and false alarms among the good ones;
+* tracking speed: ``PoseEstimator.track`` from the true pose moved by 2 cm / 3 deg (images/s).
+
+The sets are the README's (``monose3 generate --renderer tiny``: rendered by pybullet, never
+trained on):
+
+    python benchmarks/accuracy.py --data data/reallike_tiny data/hard_tiny --limit 60 --json accuracy.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from monose3.api import load_estimator
+from monose3.data.datasets import open_dataset
+from monose3.errors import run_reporting_errors
+from monose3.geometry.poses import perturb_poses
+from monose3.geometry.rotations import axis_angle_to_matrix
+from monose3.perception.fitting import RELIABLE_IOU, fit_pose, track_pose
+from monose3.report.metrics import add_per_frame, auc
+
+STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ refinement (default)")
+
+
+def frame_add(estimator, frame, pose: np.ndarray) -> float:
+    if not np.isfinite(pose).all():
+        return float("inf")
+    pred = estimator.robot.keypoints(frame.joints[None], pose[None])
+    return float(add_per_frame(pred, frame.keypoints_3d[None])[0])
+
+
+def run_stage(estimator, frame, image, stage: str) -> tuple[np.ndarray, dict, float | None]:
+    """(pose, timings, silhouette IoU) of one frame through one stage."""
+    if stage == STAGES[0]:
+        tick = time.perf_counter()
+        est = estimator.estimate([image], frame.K[None], frame.joints[None], sampler="revdiff")
+        pose = est.poses[0] if est.in_view[0] else np.full((4, 4), np.nan)
+        return pose, {"total": time.perf_counter() - tick}, None
+    options = {STAGES[1]: (False, False), STAGES[2]: (True, False), STAGES[3]: (True, True)}[stage]
+    args = (estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
+    fit = fit_pose(*args, sphere=options[0], refine=options[1])
+    return fit.pose, {**fit.timings, "total": sum(fit.timings.values())}, fit.iou if fit.found else 0.0
+
+
+def moved(pose: np.ndarray, rng: np.random.Generator, deg: float, cm: float) -> np.ndarray:
+    """``pose`` turned by exactly ``deg`` about a random axis (through the base origin, camera
+    frame) and shifted by exactly ``cm`` in a random direction."""
+    axis, shift = rng.normal(size=3), rng.normal(size=3)
+    out = pose.copy()
+    out[:3, :3] = axis_angle_to_matrix(axis / np.linalg.norm(axis), np.radians(deg)) @ pose[:3, :3]
+    out[:3, 3] += shift / np.linalg.norm(shift) * cm / 100
+    return out
+
+
+def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
+    frames = open_dataset(folder, estimator.robot)
+    n = min(limit, len(frames))
+    rng = np.random.default_rng(0)
+    adds, seconds, ious = defaultdict(list), defaultdict(list), []
+    refine = {"start": [], "final": []}
+    track_seconds = []
+    for i in tqdm(range(n), desc=Path(folder).name):
+        frame = frames[i]
+        image = frame.load_image()
+        for stage in STAGES:
+            pose, timings, iou = run_stage(estimator, frame, image, stage)
+            adds[stage].append(frame_add(estimator, frame, pose))
+            for key, value in timings.items():
+                seconds[f"{stage}/{key}"].append(value)
+            if stage == STAGES[-1]:
+                ious.append(iou)
+        start = moved(frame.pose, rng, args.start_deg, args.start_cm)
+        fit = track_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints, start,
+                         iterations=args.refine_iterations)  # fmt: skip
+        refine["start"].append(frame_add(estimator, frame, start))
+        refine["final"].append(frame_add(estimator, frame, fit.pose))
+        near = perturb_poses(frame.pose[None], rng, 0.02, 3.0)
+        tick = time.perf_counter()
+        estimator.track([image], frame.K[None], frame.joints[None], near)
+        track_seconds.append(time.perf_counter() - tick)
+    return summarise(adds, seconds, ious, refine, track_seconds, args.bad_mm / 1000)
+
+
+def summarise(adds, seconds, ious, refine, track_seconds, bad_m: float) -> dict:
+    rows = {}
+    for stage in STAGES:
+        a = np.asarray(adds[stage])
+        split = {k.split("/", 1)[1]: float(np.mean(v)) for k, v in seconds.items() if k.startswith(stage + "/")}
+        rows[stage] = {"auc": auc(a), "median_add_mm": float(np.median(a) * 1000), "seconds": split}
+    final = np.asarray(adds[STAGES[-1]])
+    flagged = np.asarray(ious) < RELIABLE_IOU
+    bad = final > bad_m
+    start, end = np.asarray(refine["start"]), np.asarray(refine["final"])
+    return {
+        "stages": rows,
+        "refinement": {
+            "closer_share": float((end < start).mean()),
+            "start_median_mm": float(np.median(start) * 1000),
+            "final_median_mm": float(np.median(end) * 1000),
+        },
+        "reliable_flag": {
+            "bad": int(bad.sum()),
+            "good": int((~bad).sum()),
+            "recall": float((flagged & bad).sum() / max(1, bad.sum())),
+            "false_alarms": float((flagged & ~bad).sum() / max(1, (~bad).sum())),
+        },
+        "tracking_images_per_s": float(1 / np.mean(track_seconds)),
+    }
+
+
+def print_report(results: dict[str, dict], args) -> None:
+    names = list(results)
+    print(f"{'stage':<26}" + "".join(f"{n + ' AUC':>22}{'median mm':>11}{'s/img':>7}" for n in names))
+    for stage in STAGES:
+        cells = []
+        for n in names:
+            row = results[n]["stages"][stage]
+            cells.append(f"{row['auc']:>22.2f}{row['median_add_mm']:>11.1f}{row['seconds']['total']:>7.2f}")
+        print(f"{stage:<26}" + "".join(cells))
+    for n in names:
+        r = results[n]
+        split = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"][STAGES[-1]]["seconds"].items())
+        ref, flag = r["refinement"], r["reliable_flag"]
+        print(f"\n{n}: default pipeline s/img split: {split}")
+        print(
+            f"  refinement from truth moved {args.start_deg:g} deg / {args.start_cm:g} cm: "
+            f"{100 * ref['closer_share']:.0f} % end closer; median ADD {ref['start_median_mm']:.1f} -> "
+            f"{ref['final_median_mm']:.1f} mm"
+        )
+        print(
+            f"  reliable flag (IoU < {RELIABLE_IOU}) vs ADD > {args.bad_mm:g} mm: recall {100 * flag['recall']:.0f} % "
+            f"of {flag['bad']} bad, false alarms {100 * flag['false_alarms']:.0f} % of {flag['good']} good"
+        )
+        print(f"  tracking: {r['tracking_images_per_s']:.1f} images/s")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", nargs="+", default=["data/reallike_tiny", "data/hard_tiny"])
+    p.add_argument("--limit", type=int, default=60)
+    p.add_argument("--checkpoint", help="denoiser (default: bundled)")
+    p.add_argument("--parser", help="robot parser weights (default: bundled)")
+    p.add_argument("--start-deg", type=float, default=5.0)
+    p.add_argument("--start-cm", type=float, default=3.0)
+    p.add_argument("--refine-iterations", type=int, default=10)
+    p.add_argument("--bad-mm", type=float, default=30.0)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--json")
+    args = p.parse_args(argv)
+
+    def run() -> int:
+        torch.set_num_threads(args.threads)
+        estimator = load_estimator(args.checkpoint, parser=args.parser, device="cpu")
+        results = {Path(d).name: evaluate_set(estimator, d, args.limit, args) for d in args.data}
+        print_report(results, args)
+        if args.json:
+            Path(args.json).write_text(json.dumps(results, indent=1))
+            print(f"wrote {args.json}")
+        return 0
+
+    return run_reporting_errors(run, "accuracy")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
