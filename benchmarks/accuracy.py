@@ -91,7 +91,7 @@ def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
                 ious.append(iou)
         start = moved(frame.pose, rng, args.start_deg, args.start_cm)
         fit = track_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints, start,
-                         iterations=args.refine_iterations)  # fmt: skip
+                         iterations=tuple(args.refine_iterations))  # fmt: skip
         refine["start"].append(frame_add(estimator, frame, start))
         refine["final"].append(frame_add(estimator, frame, fit.pose))
         near = perturb_poses(frame.pose[None], rng, 0.02, 3.0)
@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--parser", help="robot parser weights (default: bundled)")
     p.add_argument("--start-deg", type=float, default=5.0)
     p.add_argument("--start-cm", type=float, default=3.0)
-    p.add_argument("--refine-iterations", type=int, default=10)
+    p.add_argument("--refine-iterations", type=int, nargs=2, default=[12, 6], metavar=("COARSE", "FINE"))
     p.add_argument("--bad-mm", type=float, default=30.0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json")

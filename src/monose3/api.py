@@ -214,7 +214,11 @@ def write_pose_files(result: PoseResult, out: Path) -> tuple[Path, Path]:
 def format_pose(result: PoseResult) -> str:
     fmt = lambda m: "\n".join("  [" + ", ".join(f"{v: .6f}" for v in row) + "]" for row in m)  # noqa: E731
     if result.fit_iou is not None:
-        rel = "reliable" if result.reliable else f"UNRELIABLE (the silhouette fits below IoU {RELIABLE_IOU})"
+        rel = (
+            "reliable"
+            if result.reliable
+            else f"UNRELIABLE (silhouette IoU below {RELIABLE_IOU} or robot mostly outside)"
+        )
         how = f"silhouette IoU {result.fit_iou:.3f}, {rel}"
     elif result.reliable is None:
         how = "a single chain has no spread, so no confidence (use --chains 2 or more for one)"

@@ -38,7 +38,6 @@ from monose3.geometry.averaging import (
 )
 from monose3.geometry.rotations import matrix_to_quat_xyzw
 from monose3.method.estimator import UNRELIABLE_MM
-from monose3.perception.fitting import RELIABLE_IOU
 from monose3.report.metrics import add_per_frame
 from monose3.report.overlays import image_grid, pose_overlays
 from monose3.robot import RobotModel
@@ -49,7 +48,7 @@ OVERLAY_TILE_WIDTH = 480
 
 REASON_OUT_OF_VIEW = "out of view"
 REASON_UNRELIABLE = "unreliable chains"
-REASON_POOR_FIT = "poor silhouette fit"
+REASON_POOR_FIT = "unreliable fit"
 REASON_CONSENSUS = "far from consensus"
 
 
@@ -71,7 +70,7 @@ class FrameResult:
     in_view: bool
     chain_spread_mm: float
     chain_spread_deg: float
-    fit_iou: float | None = None  # the "fit" sampler's silhouette IoU (None for the paper's samplers)
+    fit_reliable: bool | None = None  # the "fit" sampler's reliable flag (None for the paper's samplers)
     residual_mm: float = float("nan")  # translation distance to the fused pose
     residual_deg: float = float("nan")  # rotation angle to the fused pose
     used: bool = False
@@ -87,7 +86,7 @@ class FrameResult:
             "residual_mm": _num(self.residual_mm),
             "residual_deg": _num(self.residual_deg),
             "in_view": self.in_view,
-            "silhouette_iou": self.fit_iou,
+            "fit_reliable": self.fit_reliable,
             "chain_spread_mm": _num(self.chain_spread_mm),
             "chain_spread_deg": _num(self.chain_spread_deg),
             "add_single_mm": _num(self.add_single_mm),
@@ -283,7 +282,7 @@ def _frame_result(frame, est, j: int, chains: int) -> FrameResult:
         in_view=bool(est.in_view[j]),
         chain_spread_mm=float(est.spread_mm[j]) if chains > 1 and est.fit_iou is None else float("nan"),
         chain_spread_deg=float(est.spread_deg[j]) if chains > 1 and est.fit_iou is None else float("nan"),
-        fit_iou=None if est.fit_iou is None else float(est.fit_iou[j]),
+        fit_reliable=None if est.reliable is None else bool(est.reliable[j]),
     )
 
 
@@ -293,7 +292,7 @@ def reject_unusable(results: list[FrameResult], chains: int, unreliable_mm: floa
     for r in results:
         if not r.in_view or not np.all(np.isfinite(r.camera_from_base)):
             r.reason = REASON_OUT_OF_VIEW
-        elif r.fit_iou is not None and r.fit_iou < RELIABLE_IOU:
+        elif r.fit_reliable is False:
             r.reason = REASON_POOR_FIT
         elif chains > 1 and r.chain_spread_mm > unreliable_mm:
             r.reason = REASON_UNRELIABLE

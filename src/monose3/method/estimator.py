@@ -25,7 +25,15 @@ from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
 from monose3.method.scheduler import DDIMScheduler
 from monose3.method.update import apply_update, raw_to_update
-from monose3.perception.fitting import Fit, fit_pose, pose_in_view, track_pose
+from monose3.perception.fitting import (
+    MIN_INSIDE,
+    RELIABLE_IOU,
+    Fit,
+    fit_pose,
+    inside_fraction,
+    pose_in_view,
+    track_pose,
+)
 from monose3.perception.parser import RobotParser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
@@ -54,6 +62,7 @@ class Estimate:
     fit_iou: np.ndarray | None = None  # [B] silhouette IoU of the estimate with the parser's mask
     keypoint_px: np.ndarray | None = None  # [B] keypoint reprojection error, parser-view pixels
     found: np.ndarray | None = None  # [B] bool: the parser found the robot (else the pose is NaN)
+    reliable: np.ndarray | None = None  # [B] bool: the fit is good and the robot mostly in the image
 
 
 @dataclass
@@ -249,25 +258,22 @@ class PoseEstimator:
         for i, f in enumerate(fits):
             candidates[i, : len(f.candidates)] = f.candidates
         found = np.array([f.found for f in fits])
-        in_view = found & np.array([pose_in_view(self.robot, p, q, K, img.shape) for p, q, K, img in
-                                    zip(poses, joints, Ks, images, strict=True)])  # fmt: skip
-        kp = self.robot.keypoints(np.asarray(joints), np.nan_to_num(candidates[:, 0]))
-        spread = np.zeros(len(fits))
-        for i, f in enumerate(fits):  # the refined runners-up's distance to the estimate
-            if len(f.candidates) > 1:
-                others = self.robot.keypoints(np.repeat(joints[i][None], len(f.candidates) - 1, 0), f.candidates[1:])
-                spread[i] = 1000 * np.linalg.norm(others - kp[i], axis=-1).mean()
+        views = list(zip(poses, joints, Ks, [img.shape for img in images], strict=True))
+        in_view = found & np.array([pose_in_view(self.robot, *v) for v in views])
+        inside = np.array([inside_fraction(self.robot, *v) for v in views])
+        iou = np.array([f.iou for f in fits])
         return Estimate(
             poses=poses,
             hypotheses=candidates,
             in_view=in_view,
-            spread_mm=spread,
+            spread_mm=np.zeros(len(fits)),
             spread_deg=np.zeros(len(fits)),
             history=[candidates],
             timings={"total": seconds},
-            fit_iou=np.array([f.iou for f in fits]),
+            fit_iou=iou,
             keypoint_px=np.array([f.keypoint_error for f in fits]),
             found=found,
+            reliable=in_view & (iou >= RELIABLE_IOU) & (inside >= MIN_INSIDE),
         )
 
     def track(

@@ -46,6 +46,7 @@ from monose3.perception.views import (
     full_box,
     image_tensor,
     parse_view,
+    resized_view,
     zoom_box,
 )
 from monose3.robot import RobotModel
@@ -55,15 +56,18 @@ MIN_KEYPOINT_CONFIDENCE = 0.2
 PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view's width
 SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
 KEEP_HYPOTHESES = 4  # refined per image
-REFINE_ITERATIONS = 8
-TRACK_ITERATIONS = 3
+COARSE_ITERATIONS = 12  # refinement at SCORE_SIZE
+REFINE_ITERATIONS = 6  # then at the view's resolution
+TRACK_ITERATIONS = (4, 2)  # coarse, fine: between frames the robot moves little
 KEYPOINT_PENALTY = 2.0  # score = IoU - this * (keypoint error / view width)
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
 KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
 CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
-SPHERE_AZIMUTHS, SPHERE_ELEVATIONS = 12, (0.0, 30.0, 60.0)
-# The fit flags an estimate unreliable below this IoU (benchmarks/accuracy.py measures what it catches).
+SPHERE_AZIMUTHS, SPHERE_ELEVATIONS = 8, (10.0, 45.0)  # a fallback: PnP from the keypoints wins when it works
+# The fit flags an estimate unreliable below this IoU (benchmarks/accuracy.py measures what it
+# catches), or when less than MIN_INSIDE of the robot lies in the image (too little to fit to).
 RELIABLE_IOU = 0.9
+MIN_INSIDE = 0.5
 
 
 @dataclass
@@ -185,6 +189,25 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     return poses
 
 
+def refine_coarse_to_fine(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                          keypoints_base: np.ndarray, coarse: int = COARSE_ITERATIONS,
+                          fine: int = REFINE_ITERATIONS) -> np.ndarray:  # fmt: skip
+    """:func:`refine_poses` at :data:`SCORE_SIZE` first (``coarse`` iterations: renders 4x
+    cheaper, and ICP on silhouettes needs many small steps from afar), then ``fine`` at the view's resolution."""
+    poses = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, coarse)
+    return refine_poses(renderer, joints, poses, view, keypoints_base, fine)
+
+
+def inside_fraction(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> float:
+    """The share of the robot's surface points that ``pose`` puts in front of the camera and inside the image."""
+    if not np.isfinite(pose).all():
+        return 0.0
+    cam = robot.surface_points(joints[None])[0] @ pose[:3, :3].T + pose[:3, 3]
+    u, v = project(cam, K).T
+    h, w = image_shape[:2]
+    return float(np.mean((cam[:, 2] > 0) & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)))
+
+
 def pose_in_view(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> bool:
     """Whether ``pose`` puts the robot's centroid in front of the camera and inside the image."""
     if not np.isfinite(pose).all():
@@ -243,7 +266,7 @@ def fit_pose(
     poses = poses[np.argsort(-scores)[:KEEP_HYPOTHESES]]
     clock.lap("search")
     if refine:
-        poses = refine_poses(renderer, joints, poses, view, kp_base)
+        poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base)
         clock.lap("refine")
     fit = best_fit(renderer, joints, poses, view, kp_base)
     clock.lap("score")
@@ -285,10 +308,10 @@ def track_pose(
     K: np.ndarray,
     joints: np.ndarray,
     previous: np.ndarray,
-    iterations: int = TRACK_ITERATIONS,
+    iterations: tuple[int, int] = TRACK_ITERATIONS,
 ) -> Fit:
-    """Tracking: ``iterations`` of the refinement from the previous pose, in one parser view
-    around where that pose puts the robot's surface."""
+    """Tracking: the refinement's (coarse, fine) ``iterations`` from the previous pose, in one
+    parser view around where that pose puts the robot's surface."""
     size = parser.config.input_size
     aspect = size[0] / size[1]
     whole = full_box((image.shape[1], image.shape[0]), aspect)
@@ -301,5 +324,5 @@ def track_pose(
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
     kp_base = robot.keypoints(joints[None])[0]
-    poses = refine_poses(renderer, joints, previous[None], view, kp_base, iterations)
+    poses = refine_coarse_to_fine(renderer, joints, previous[None], view, kp_base, *iterations)
     return best_fit(renderer, joints, poses, view, kp_base)

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torchvision.ops import roi_align
 
-from monose3.geometry.camera import crop_intrinsics
+from monose3.geometry.camera import crop_intrinsics, scale_K
 from monose3.perception.parser import RobotParser, decode_keypoints
 
 MASK_THRESHOLD = 0.5
@@ -84,3 +84,11 @@ def box_around(lo: np.ndarray, hi: np.ndarray, aspect: float) -> np.ndarray:
     half = np.maximum(half, [half[1] * aspect, half[0] / aspect])
     centre = (lo + hi) / 2
     return np.concatenate([centre - half, centre + half])
+
+
+def resized_view(view: ViewEvidence, size: tuple[int, int]) -> ViewEvidence:
+    """``view`` at another resolution (the refinement's coarse pass): mask, keypoints and K scaled."""
+    mask = F.interpolate(view.mask[None, None], size=(size[1], size[0]), mode="bilinear", align_corners=False)
+    scale = np.array(size, float) / np.array(view.size, float)
+    keypoints = (view.keypoints + 0.5) * scale - 0.5
+    return ViewEvidence(mask[0, 0], keypoints, view.confidence, scale_K(view.K, view.size, size), view.box)

@@ -1,0 +1,182 @@
+"""The robot parser (pretrained trunk, heads, losses, training data) and the geometric fit."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import monose3
+from monose3.apps.cli import main
+from monose3.errors import Monose3Error
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import axis_angle_to_matrix
+from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
+from monose3.perception.config import ParserConfig
+from monose3.perception.fitting import fit_pose, refine_coarse_to_fine, track_pose
+from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
+from monose3.perception.silhouette import Outline
+from monose3.perception.views import ViewEvidence
+from monose3.training.checkpoints import load_parser
+from monose3.training.formats import BUNDLED_PARSER
+
+SAMPLE = monose3.ASSETS / "sample"
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return monose3.load_image(SAMPLE / "image.jpg"), monose3.load_camera(SAMPLE / "camera.json").K
+
+
+@pytest.fixture(scope="module")
+def parser():
+    return load_parser(BUNDLED_PARSER)
+
+
+def _add(robot, joints, a, b) -> float:
+    ka, kb = robot.keypoints(joints[None], a[None])[0], robot.keypoints(joints[None], b[None])[0]
+    return float(np.linalg.norm(ka - kb, axis=1).mean())
+
+
+def _moved(pose, deg, cm, seed=0):
+    rng = np.random.default_rng(seed)
+    axis, shift = rng.normal(size=3), rng.normal(size=3)
+    rot = axis_angle_to_matrix(axis / np.linalg.norm(axis), np.radians(deg)) @ pose[:3, :3]
+    return make_pose(rot, pose[:3, 3] + shift / np.linalg.norm(shift) * cm / 100)
+
+
+# ---- the network ----------------------------------------------------------------------------------
+
+
+def test_pretrained_trunk_loads_strictly_and_gives_a_feature_pyramid():
+    net = pretrained_lite0().eval()
+    with torch.no_grad():
+        feats = net.features(torch.rand(1, 3, 96, 128))
+        logits = net(torch.rand(1, 3, 96, 128))
+    assert [f.shape[1] for f in feats] == list(FEATURE_CHANNELS)
+    assert [f.shape[-1] for f in feats] == [64, 32, 16, 8, 4] and logits.shape == (1, 1000)
+    # ImageNet statistics, not an initialisation: the stem's batch norm has learnt running means.
+    assert net._bn0.running_mean.abs().sum() > 1.0
+
+
+def test_decode_keypoints_finds_a_sub_cell_peak():
+    h, w = 30, 40
+    ys, xs = torch.meshgrid(torch.arange(h).float(), torch.arange(w).float(), indexing="ij")
+    cell = torch.tensor([12.3, 7.6])
+    logits = -((xs - cell[0]) ** 2 + (ys - cell[1]) ** 2) / (2 * 0.8**2)
+    uv, conf = decode_keypoints(logits[None, None])
+    assert torch.allclose(pixel_to_cell(uv[0, 0]), cell, atol=0.1) and conf.item() > 0.9
+
+
+def test_keypoint_loss_is_lowest_at_the_keypoint_and_skips_those_outside():
+    h, w = 30, 40
+    logits = torch.zeros(1, 2, h, w)
+    logits[0, 0, 10, 20] = 8.0
+    at = torch.tensor([[[41.0, 21.0], [-50.0, 5.0]]])  # the second keypoint lies outside the image
+    away = torch.tensor([[[11.0, 41.0], [-50.0, 5.0]]])
+    assert keypoint_loss(logits, at, 1.0) < keypoint_loss(logits, away, 1.0)
+    assert torch.isfinite(keypoint_loss(logits, torch.full((1, 2, 2), -100.0), 1.0))
+
+
+def test_mask_loss_prefers_the_right_mask():
+    target = torch.zeros(1, 1, 8, 8)
+    target[..., 2:5, 3:6] = 1
+    assert mask_loss(target * 20 - 10, target) < mask_loss(10 - target * 20, target)
+
+
+def test_outline_nearest_matches_brute_force():
+    mask = np.zeros((40, 50), bool)
+    mask[10:25, 12:30] = True
+    outline = Outline(mask)
+    uv = np.random.default_rng(0).uniform(0, 49, (30, 2))
+    found = outline.pixels[outline.nearest(np.round(uv))]
+    brute = np.linalg.norm(outline.pixels[None] - np.round(uv)[:, None], axis=-1).min(1)
+    assert np.allclose(np.linalg.norm(found - np.round(uv), axis=-1), brute, atol=0.5)
+
+
+# ---- the fit ---------------------------------------------------------------------------------------
+
+
+def _perfect_view(models, renderers, joints, pose, K, size=(320, 240)) -> ViewEvidence:
+    """What a perfect parser would report: the rendered mask and the projected keypoints."""
+    mask = renderers["panda"].render(joints[None], torch.from_numpy(pose)[None], torch.from_numpy(K)[None], size).mask
+    cam = models["panda"].keypoints(joints[None], pose[None])[0]
+    uv = cam[:, :2] / cam[:, 2:] * np.diag(K)[:2] + K[:2, 2]
+    box = np.array([0.0, 0.0, *size])
+    return ViewEvidence(mask[0].float(), uv, np.ones(len(uv)), K, box)
+
+
+def test_refinement_recovers_the_pose_from_perfect_evidence(models, renderers, sample_view):
+    view = sample_view(models["panda"], np.random.default_rng(3), size=(320, 240), dist=(1.0, 1.8))
+    evidence = _perfect_view(models, renderers, view.joints, view.pose, view.K)
+    start = _moved(view.pose, 5, 3)
+    kp = models["panda"].keypoints(view.joints[None])[0]
+    refined = refine_coarse_to_fine(renderers["panda"], view.joints, start[None], evidence, kp)[0]
+    robot = models["panda"]
+    assert _add(robot, view.joints, start, view.pose) > 0.02
+    assert _add(robot, view.joints, refined, view.pose) < 0.002
+
+
+def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
+    image, K = sample
+    joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
+    fit = fit_pose(parser, renderers["panda"], models["panda"], image, K, joints)
+    assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "score"}
+    tracked = track_pose(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 3, 2))
+    assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
+
+
+def test_no_robot_in_the_image_is_not_a_pose(sample, tmp_path, capsys):
+    image, K = sample
+    empty = np.clip(image.astype(float).mean((0, 1)) + np.zeros_like(image, float), 0, 255).astype(np.uint8)
+    empty[::7] = 30  # stripes, so the image is not refused as uniform
+    estimator = monose3.load_estimator()
+    joints = monose3.load_joints(SAMPLE / "joints.json", estimator.robot)
+    with pytest.raises(Monose3Error, match="robot was not found"):
+        monose3.estimate_pose(estimator, empty, joints, K)
+    monose3.save_image(tmp_path / "empty.png", empty)
+    argv = ["estimate", "--image", str(tmp_path / "empty.png"), "--joints", str(SAMPLE / "joints.json")]
+    assert main([*argv, "--camera", str(SAMPLE / "camera.json"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "robot was not found" in err[0]
+    assert not (tmp_path / "o" / "pose.json").exists()
+
+
+def test_robot_mostly_outside_the_image_is_flagged_unreliable(sample):
+    """A 120 x 90 window around the principal point: most of the sample's robot lies outside it."""
+    image, K = sample
+    x0, y0 = int(K[0, 2]) - 60, int(K[1, 2]) - 45
+    window = np.ascontiguousarray(image[y0 : y0 + 90, x0 : x0 + 120])
+    K_window = K.copy()
+    K_window[:2, 2] -= [x0, y0]
+    estimator = monose3.load_estimator()
+    joints = monose3.load_joints(SAMPLE / "joints.json", estimator.robot)
+    try:
+        result = monose3.estimate_pose(estimator, window, joints, K_window)
+    except Monose3Error as err:  # also acceptable: refused as not found or out of view, never a crash
+        assert "not found" in str(err) or "outside the image" in str(err)
+        return
+    assert result.reliable is False
+
+
+def test_missing_or_corrupt_parser_weights_are_named(tmp_path, capsys):
+    bad = tmp_path / "parser.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(Monose3Error, match="parser.pt"):
+        load_parser(bad)
+    argv = ["estimate", "--image", str(SAMPLE / "image.jpg"), "--joints", str(SAMPLE / "joints.json")]
+    argv += ["--camera", str(SAMPLE / "camera.json"), "--out", str(tmp_path / "o")]
+    assert main([*argv, "--parser", str(tmp_path / "nope.pt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope.pt" in err[0]
+    assert main([*argv, "--parser", str(bad)]) == 2
+    assert "parser.pt" in capsys.readouterr().err
+
+
+def test_a_parser_config_round_trips_through_its_dictionary():
+    from dataclasses import asdict
+
+    from monose3.perception.config import parser_config
+
+    config = ParserConfig(input_size=(256, 192), decoder_width=32)
+    assert parser_config(json.loads(json.dumps(asdict(config)))) == config
