@@ -215,3 +215,17 @@ def test_denoiser_designs_builds_sanity_pools(sanity: str, keep_threads: None) -
     assert pool["render"].shape[0] == 2 and pool["render"].dtype == np.uint8
     same_translation = np.allclose(pool["pose_ref_0"][:, :3, 3], pool["pose_ref_t"][:, :3, 3])
     assert same_translation == (sanity == "rotation")
+
+
+@pytest.mark.slow
+def test_accuracy_small(tmp_path: Path, tiny_dream: Path, capsys, keep_threads: None) -> None:
+    """Every stage row, the refinement, the flag and tracking lines, and the JSON."""
+    import json
+
+    acc = load("accuracy")
+    assert acc.main(["--data", str(tiny_dream), "--limit", "2", "--json", str(tmp_path / "a.json")]) == 0
+    out = capsys.readouterr().out
+    for line in (*acc.STAGES, "end closer", "reliable flag", "images/s"):
+        assert line in out
+    data = json.loads((tmp_path / "a.json").read_text())[tiny_dream.name]
+    assert set(data["stages"]) == set(acc.STAGES) and 0 <= data["refinement"]["closer_share"] <= 1
