@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from monose3 import atomic
 from monose3.api import load_estimator
 from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
@@ -174,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         results = {Path(d).name: evaluate_set(estimator, d, args.limit, args) for d in args.data}
         print_report(results, args)
         if args.json:
-            Path(args.json).write_text(json.dumps(results, indent=1))
+            atomic.write_text(args.json, json.dumps(results, indent=1))
             print(f"wrote {args.json}")
         return 0
 

@@ -6,6 +6,7 @@ import torch
 from conftest import TINY_NET, project_np
 
 from monose3.data.datasets import open_dataset
+from monose3.errors import Monose3Error
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.config import get_preset
 from monose3.method.denoiser import Denoiser
@@ -150,3 +151,18 @@ def test_chains_from_a_low_start_spread_less(zero_estimator, frames):
 
     low, high = start_spread(10), start_spread(None)
     assert 0 < low < 0.2 * high
+
+
+@pytest.mark.parametrize(
+    ("sampler", "steps", "needle"),
+    [
+        ("revdiff", (0, 5), "ddim_steps >= 1"),
+        ("directreg", (0, 0), "at least one step"),
+        ("revdiff", (2, -1), "negative"),
+        ("fancy", (1, 1), "unknown sampler"),
+    ],
+)
+def test_step_counts_the_reverse_process_cannot_run_are_refused(zero_estimator, frames, sampler, steps, needle):
+    images, Ks, joints = _inputs(frames, 1)
+    with pytest.raises(Monose3Error, match=needle):
+        zero_estimator.estimate(images, Ks, joints, sampler=sampler, ddim_steps=steps[0], direct_steps=steps[1])

@@ -77,6 +77,18 @@ class PreparedBatch:
     centroid: torch.Tensor  # [N, 3]
 
 
+def check_steps(sampler: str, ddim_steps: int, direct_steps: int) -> None:
+    """One line for step counts the reverse process cannot run (before any work)."""
+    if sampler not in ("revdiff", "directreg"):
+        raise Monose3Error(f"unknown sampler {sampler!r}; choose fit, revdiff or directreg")
+    if min(ddim_steps, direct_steps) < 0:
+        raise Monose3Error(f"step counts cannot be negative (ddim_steps={ddim_steps}, direct_steps={direct_steps})")
+    if sampler == "revdiff" and ddim_steps < 1:
+        raise Monose3Error("revdiff needs ddim_steps >= 1; for direct steps only use sampler='directreg'")
+    if ddim_steps + direct_steps < 1:
+        raise Monose3Error("directreg needs at least one step (ddim_steps + direct_steps >= 1)")
+
+
 class PoseEstimator:
     """A trained denoiser plus the batched renderer on the model's device, and optionally a
     robot parser (the "fit" sampler, the default when there is one); call :meth:`estimate` or :meth:`track`."""
@@ -198,6 +210,7 @@ class PoseEstimator:
         inf = self.config.inference
         ddim_steps = inf.ddim_steps if ddim_steps is None else ddim_steps
         direct_steps = inf.direct_steps if direct_steps is None else direct_steps
+        check_steps(sampler, ddim_steps, direct_steps)
         self.timings = defaultdict(float)
         start = time.perf_counter()
         batch = self.prepare(images, Ks, joints, hypotheses)
@@ -218,10 +231,8 @@ class PoseEstimator:
                 with self.timed("update"):
                     pose = self.scheduler.step(x0, t, t_prev, pose, batch.K, batch.size, inf.eta, gen)
                 history.append(pose)
-        elif sampler == "directreg":
+        else:  # directreg (check_steps refused anything else)
             direct_steps += ddim_steps
-        else:
-            raise ValueError(f"unknown sampler {sampler!r} (revdiff or directreg)")
         for _ in range(direct_steps):
             pose = self.predict_x0(batch, pose, 1)
             history.append(pose)
