@@ -18,7 +18,7 @@ camera for the whole set:
 The set is split into disjoint subsets of N frames for every N in ``--sizes`` and
 ``calibrate()`` runs on each. Reported per N: the fused extrinsic's error against ground truth
 (ADD over the keypoints averaged over the subset's frames, translation mm, rotation deg; median
-and range over the subsets) and the frames rejected (out of view / unreliable chains / far from
+and range over the subsets) and the frames rejected (out of view / unreliable chains or fit / far from
 consensus), next to the median single-frame error of the same frames.
 
     python benchmarks/calibration.py --checkpoint CK [--frames 40] [--sizes 5 10 20 40] [--seed 0] \
@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from monose3.api import load_estimator
-from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNRELIABLE, calibrate
+from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_POOR_FIT, REASON_UNRELIABLE, calibrate
 from monose3.data.datasets import open_dataset
 from monose3.data.dream_writer import write_camera_settings, write_frame
 from monose3.data.scenes.appearance import BackgroundSource, compose_frame, draw_shapes
@@ -58,7 +58,7 @@ IMAGE_SIZE = (640, 480)
 SIZES = (5, 10, 20, 40)
 MAX_JOINT_TRIES = 200  # random configurations tried per frame before the camera is redrawn
 MAX_CAMERAS = 20
-REASONS = (REASON_OUT_OF_VIEW, REASON_UNRELIABLE, REASON_CONSENSUS)
+REASONS = (REASON_OUT_OF_VIEW, REASON_UNRELIABLE, REASON_POOR_FIT, REASON_CONSENSUS)
 
 
 # ---- the static-camera set ------------------------------------------------------------------
@@ -220,9 +220,10 @@ def report(runs: dict[int, list[dict]], info: dict, total: int, chains: int, che
                 return format(v[0], fmt)
             return f"{format(np.median(v), fmt)} [{format(min(v), fmt)}-{format(max(v), fmt)}]"
 
+        unreliable = rej.get(REASON_UNRELIABLE, 0) + rej.get(REASON_POOR_FIT, 0)
         lines.append(
             f"{n:>3} {len(rs):>7} {cell('add', '.1f'):>20} {cell('mm', '.1f'):>20} {cell('deg', '.2f'):>20} "
-            f"{f'{used}/{n * len(rs)}':>9} {rej.get(REASON_OUT_OF_VIEW, 0):>11} {rej.get(REASON_UNRELIABLE, 0):>10} "
+            f"{f'{used}/{n * len(rs)}':>9} {rej.get(REASON_OUT_OF_VIEW, 0):>11} {unreliable:>10} "
             f"{rej.get(REASON_CONSENSUS, 0):>9} {len(rs) - len(ok):>6}"
         )
         summary[n] = {k: _med([r[k] for r in ok]) for k in ("add", "mm", "deg")}
