@@ -43,3 +43,19 @@ def test_training_writes_shards_continues_and_exports(tmp_path):
     with torch.no_grad():
         assert torch.allclose(a(x)[0], b(x)[0], atol=0.05)  # fp16 export
     assert (tmp_path / "b" / "log.csv").is_file()
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        ([], "budget"),
+        (["--steps", "1", "--preset", "huge"], "unknown parser preset"),
+        (["--minutes", "-1"], "positive"),
+    ],
+)
+def test_train_parser_refuses_bad_options_in_one_line(tmp_path, capsys, extra, needle):
+    from monose3.apps.cli import main
+
+    assert main(["train-parser", "--out", str(tmp_path / "run"), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
