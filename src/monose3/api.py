@@ -73,10 +73,11 @@ class PoseResult:
 
     @property
     def reliable(self) -> bool | None:
-        """ "fit": whether the silhouette fits (IoU >= ``RELIABLE_IOU``). The paper's samplers:
-        whether the chains agree within ``UNRELIABLE_MM``; None with one chain (nothing to compare)."""
-        if self.fit_iou is not None:
-            return bool(self.fit_iou >= RELIABLE_IOU)
+        """ "fit": whether the silhouette fits (IoU >= ``RELIABLE_IOU``) with most of the robot in
+        the image. The paper's samplers: whether the chains agree within ``UNRELIABLE_MM``; None
+        with one chain (nothing to compare)."""
+        if self.estimate.reliable is not None:
+            return bool(self.estimate.reliable[0])
         if self.chains < 2 or not np.isfinite(self.spread_mm):
             return None
         return bool(self.spread_mm <= UNRELIABLE_MM)
@@ -145,10 +146,6 @@ def estimate_pose(
     image, joints, K, prior, chains = validation.check_estimate_inputs(
         image, joints, K, estimator.robot, prior=prior, chains=chains, sampler=sampler
     )
-    if sampler == "fit" and estimator.parser is None:
-        raise Monose3Error(
-            f"no robot parser for {estimator.robot.name}; load one (parser=...) or use sampler='revdiff'"
-        )
     if sampler == "fit":
         est = estimator.estimate([image], K[None], joints[None], sampler=sampler, init_poses=_batch_of(prior))
         chains = 1
