@@ -4,9 +4,9 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
 
 1. **Views.** The parser sees the whole image (padded to 4:3), then a zoomed view around the
    mask it found, so a small robot is parsed at a useful resolution.
-2. **Hypotheses.** PnP (OpenCV's SQPnP in RANSAC) from the keypoints, plus any poses the caller
-   brings (the diffusion's chains, a prior); when neither gives one, orientations over the
-   sphere placed where the mask is and as large as it is.
+2. **Hypotheses.** PnP (OpenCV's SQPnP in RANSAC, and on leave-one-out subsets) from the
+   keypoints, any poses the caller brings (a prior), and orientations over the sphere placed
+   where the mask is and as large as it is (the fallback when PnP fails).
 3. **Scoring.** Each hypothesis is rendered (one batch) and scored by its silhouette's IoU with
    the mask, less its keypoint reprojection error.
 4. **Refinement.** The best few are refined by damped Gauss-Newton on the keypoints' reprojection
@@ -146,13 +146,17 @@ def _look_at(eye: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z])
 
 
+def keypoint_distances(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
+    """``[H, K]`` pixel distance of each keypoint, as each pose projects it, to where the parser saw it."""
+    cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base) + poses[:, None, :3, 3]
+    return np.linalg.norm(project(cam, view.K) - view.keypoints, axis=-1)
+
+
 def keypoint_errors(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
     """Confidence-weighted mean reprojection error ``[H]`` (view pixels) of the keypoints at
     each pose, each error capped at :data:`KEYPOINT_ERROR_CAP` of the view's width (a keypoint
     the parser got wrong costs a bounded amount)."""
-    cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base) + poses[:, None, :3, 3]
-    err = np.linalg.norm(project(cam, view.K) - view.keypoints, axis=-1)
-    err = np.minimum(err, KEYPOINT_ERROR_CAP * view.size[0])
+    err = np.minimum(keypoint_distances(poses, keypoints_base, view), KEYPOINT_ERROR_CAP * view.size[0])
     return (err * view.confidence).sum(-1) / max(view.confidence.sum(), 1e-6)
 
 
@@ -168,8 +172,7 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     n = len(poses)
     K = torch.from_numpy(view.K)[None].expand(n, 3, 3)
     for _ in range(iterations):
-        cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base) + poses[:, None, :3, 3]
-        kp_dist = np.linalg.norm(project(cam, view.K) - view.keypoints, axis=-1)
+        kp_dist = keypoint_distances(poses, keypoints_base, view)
         kp_weights = view.confidence / (1 + (kp_dist / (KEYPOINT_SCALE * view.size[0])) ** 2)
         rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, view.size)
         masks, depths = rendered.mask.cpu().numpy(), rendered.depth.cpu().numpy()

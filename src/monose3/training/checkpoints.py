@@ -106,6 +106,12 @@ def export_model(checkpoint: str | Path, out: str | Path, half: bool = True) -> 
 def load_parser(path: str | Path, device: str = "cpu") -> RobotParser:
     """A robot parser (:mod:`monose3.perception.parser`), in eval mode, from the file
     :func:`export_parser` writes or from a training run's shard folder."""
+    return read_parser(path)[0].to(device).eval()
+
+
+def read_parser(path: str | Path) -> tuple[RobotParser, dict]:
+    """The parser in ``path`` (as :func:`load_parser` reads it, on the CPU) and its metadata
+    (``step``, ``samples``, ``parser``: its configuration), from one read of the files."""
     from monose3.training.shards import is_shard_set, read_shards
 
     path = Path(path)
@@ -124,7 +130,7 @@ def load_parser(path: str | Path, device: str = "cpu") -> RobotParser:
         model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
     except RuntimeError as err:
         raise Monose3Error(f"{path}: weights do not fit the robot parser ({str(err)[:120]})") from None
-    return model.to(device).eval()
+    return model, meta
 
 
 def export_parser(shards: str | Path, out: str | Path) -> Path:

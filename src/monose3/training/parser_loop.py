@@ -25,14 +25,15 @@ from tqdm import tqdm
 
 from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
+from monose3.geometry.camera import project
 from monose3.perception.config import PARSER_KIND, ParserConfig
 from monose3.perception.parser import OUTPUT_STRIDE, RobotParser, keypoint_loss, mask_loss
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
-from monose3.training.checkpoints import load_parser, read_checkpoint
+from monose3.training.checkpoints import read_parser
 from monose3.training.logs import CsvTensorBoardLog
 from monose3.training.samples import GlobalSampleSampler, step_generator
-from monose3.training.shards import is_shard_set, read_shards, write_shards
+from monose3.training.shards import write_shards
 from monose3.training.synthetic import SceneDataset, load_photos, synthesize_images
 
 TRAIN_PROFILES = ("train", "reallike", "hard")
@@ -70,7 +71,6 @@ class ParserBatchMaker:
                 pin_memory=device.type == "cuda",
             )
             self.streams.append(iter(loader))
-        self._order = start_step
 
     def batch(self, step: int) -> ParserBatch:
         which = step % len(TRAIN_PROFILES)
@@ -80,9 +80,7 @@ class ParserBatchMaker:
         image, visible = synthesize_images(
             self.renderer, scenes, self.config.input_size, profile, self.photos, gen, self.device
         )
-        cam = self.robot.keypoints(scenes["joints"].numpy(), scenes["pose"].numpy())
-        uv = np.einsum("bij,bkj->bki", scenes["K"].numpy(), cam)
-        uv = uv[..., :2] / np.maximum(uv[..., 2:], 1e-6)
+        uv = project(self.robot.keypoints(scenes["joints"].numpy(), scenes["pose"].numpy()), scenes["K"].numpy())
         mask = F.avg_pool2d(visible, OUTPUT_STRIDE)
         return ParserBatch(image, mask, torch.as_tensor(uv, dtype=torch.float32, device=self.device))
 
@@ -125,8 +123,8 @@ def train_parser(
     out = Path(out)
     step = samples = 0
     if init is not None:
-        model = load_parser(init).train()
-        _, meta = read_shards(init) if is_shard_set(init) else (None, read_checkpoint(init))
+        model, meta = read_parser(init)
+        model.train()
         step, samples = int(meta["step"]), int(meta["samples"])
     else:
         model = RobotParser(config)
