@@ -23,7 +23,7 @@ put together afterwards with ``--report``::
     python benchmarks/denoiser_designs.py --out results --report
 
 Recipes: ``--rotation-output`` (``NetworkConfig.rotation_output``), ``--rot-weight``,
-``--xyz-weight 0`` (the rotation part alone), ``--train-t-max`` (train on small t only),
+``--backbone efficientnet-lite0`` (the ImageNet-pretrained trunk), ``--train-t-max`` (train on small t only),
 ``--lr``, ``--flow-weight`` (the ``cost-volume`` design's auxiliary displacement-field loss;
 its held-out error, with the render as is, zeroed and swapped, is then reported too), named
 with ``--tag``. ``--sanity clean`` / ``--sanity rotation`` build pools of
@@ -48,11 +48,13 @@ import numpy as np
 import torch
 
 from monose3.errors import Monose3Error, run_reporting_errors
-from monose3.method.config import DESIGNS, FIELD_DESIGNS, ROTATION_OUTPUTS, Config, get_preset, with_section
-from monose3.method.denoiser import Denoiser
-from monose3.method.flow_pose import field_targets, render_surface
-from monose3.method.loss import disentangled_parts, flow_errors, flow_loss
+from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, Config, get_preset, with_section
+from monose3.method.denoiser import Denoiser, DenoiserOutput
+from monose3.method.designs import FIELD_DESIGNS, build_denoiser
+from monose3.method.flow_pose import field_targets
+from monose3.method.loss import disentangled_parts, flow_errors
 from monose3.training.loop import learning_rate
+from monose3.training.objective import batch_surface, train_step
 
 BUCKETS = ((1, 10), (11, 20), (21, 50), (51, 100))
 PARTS = ("xy", "rot", "z")
@@ -140,18 +142,19 @@ def batch_of(pool: Pool, idx: torch.Tensor, config: Config) -> dict[str, torch.T
     batch = {k: v[idx] for k, v in pool.items()}
     for key in ("render", "crop"):
         batch[key] = batch[key].float() / 255.0
-    batch["surface"] = render_surface(batch["depth"].float(), batch["pose_ref_t"], batch["K_crop"])
+    batch["depth"] = batch["depth"].float()
+    batch["surface"] = batch_surface(batch)
     return batch
 
 
 # ---- training and evaluation ----------------------------------------------------------------
 
 
-def model_out(model: Denoiser, batch: dict, render: torch.Tensor | None = None, with_flow: bool = False):
-    """The network's raw output on ``batch`` (and its field, ``with_flow``), optionally with
-    another ``render`` (ablation: the image only; the geometry of H_t stays this sample's)."""
+def model_out(model: Denoiser, batch: dict, render: torch.Tensor | None = None) -> DenoiserOutput:
+    """The network's output on ``batch``, optionally with another ``render`` (ablation: the
+    image only; the geometry of H_t stays this sample's)."""
     render = batch["render"] if render is None else render
-    return model(render, batch["crop"], batch["t"], batch["surface"], with_flow=with_flow)
+    return model(render, batch["crop"], batch["t"], batch["surface"])
 
 
 def parts_of(raw: torch.Tensor, batch: dict[str, torch.Tensor], config: Config) -> dict[str, torch.Tensor]:
@@ -185,7 +188,7 @@ def evaluate(model: Denoiser | None, held: Pool, config: Config, ablation: str =
             render = {"none": None, "zero": torch.zeros_like(batch["render"])}.get(ablation)
             if ablation == "swap":
                 render = batch_of(held, (idx + 1) % n, config)["render"]
-            raw = model_out(model, batch, render)
+            raw = model_out(model, batch, render).raw
         for k, v in parts_of(raw.float(), batch, config).items():
             out[k].append(v.numpy())
     return {k: np.concatenate(v) for k, v in out.items()}
@@ -241,12 +244,18 @@ def bucket_means(parts: dict[str, np.ndarray], t: np.ndarray) -> dict[str, dict[
 def train_design(design: str, config: Config, train: Pool, held: Pool, args: argparse.Namespace) -> dict:
     """Train one design for ``args.samples`` samples, evaluating ``args.evals`` times; ablate at the end."""
     config = with_section(
-        config, "network", design=design, rotation_output=args.rotation_output, field_stride=args.field_stride
+        config,
+        "network",
+        design=design,
+        backbone=args.backbone or config.network.backbone,
+        rotation_output=args.rotation_output,
+        field_stride=args.field_stride,
     )
+    config = with_section(config, "train", rot_weight=args.rot_weight, flow_weight=args.flow_weight)
     if args.lr is not None:
         config = with_section(config, "train", lr=args.lr)
     torch.manual_seed(args.seed)
-    model = Denoiser(config.network)
+    model = build_denoiser(config.network)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)
     gen = torch.Generator().manual_seed(args.seed)  # the same batch order for every design
     rows = torch.arange(len(train["t"]))
@@ -260,21 +269,8 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
     for step in range(steps):
         model.train()
         batch = batch_of(train, order[step * bs : (step + 1) * bs], config)
-        for group in optimizer.param_groups:
-            group["lr"] = learning_rate(step, config)
-        if args.flow_weight:
-            raw, flow = model_out(model, batch, with_flow=True)
-        else:
-            raw = model_out(model, batch)
-        parts = parts_of(raw, batch, config)
-        loss = args.xyz_weight * (parts["xy"].mean() + parts["z"].mean()) + args.rot_weight * parts["rot"].mean()
-        if args.flow_weight:
-            loss = loss + args.flow_weight * flow_loss(flow, *flow_targets_of(batch, config, flow))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
-        optimizer.step()
-        window.append([parts[k].mean().item() for k in PARTS])
+        _, parts = train_step(model, optimizer, batch, config, learning_rate(step, config))
+        window.append([parts[k] for k in PARTS])
         if step + 1 in eval_at:
             train_s += time.perf_counter() - tick
             row = {"samples": (step + 1) * bs, "train_s": train_s}
@@ -296,7 +292,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
         "rotation_output": args.rotation_output,
         "lr": config.train.lr,
         "train_t_max": args.train_t_max,
-        "xyz_weight": args.xyz_weight,
+        "backbone": config.network.backbone,
         "flow_weight": args.flow_weight,
         "crop_jitter": args.crop_jitter,
         "field_stride": args.field_stride,
@@ -337,7 +333,7 @@ def flow_check(model: Denoiser, held: Pool, config: Config) -> dict:
     """For a design that predicts the displacement field (``cost-volume``): its held-out L1 error
     by t bucket (units of the render width), with the render as is, zeroed and swapped, and the
     error of a zero field; ``{}`` for the other designs."""
-    if not model.predicts_flow:
+    if not model.predicts_field:
         return {}
     model.eval()
     n, errors = len(held["t"]), {k: [] for k in ("render", "zero", "swap", "zero field")}
@@ -347,7 +343,7 @@ def flow_check(model: Denoiser, held: Pool, config: Config) -> dict:
         renders = {"render": batch["render"], "zero": torch.zeros_like(batch["render"])}
         renders["swap"] = batch_of(held, (idx + 1) % n, config)["render"]
         for name, render in renders.items():
-            _, flow = model_out(model, batch, render, with_flow=True)
+            flow = model_out(model, batch, render).field
             target, mask = flow_targets_of(batch, config, flow)
             errors[name].append(flow_errors(flow, target, mask).numpy())
             if name == "render":
@@ -488,7 +484,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--rotation-output", default="6d", choices=list(ROTATION_OUTPUTS), help="NetworkConfig.rotation_output"
     )
-    p.add_argument("--xyz-weight", type=float, default=1.0, help="weight of the xy and z parts (0: rotation only)")
+    p.add_argument(
+        "--backbone",
+        help="NetworkConfig.backbone: resnet18/34 from scratch or efficientnet-lite0 "
+        "(ImageNet-pretrained; cost-volume, flow-solve) [the preset's]",
+    )
     p.add_argument(
         "--flow-weight", type=float, default=0.0, help="weight of the cost-volume design's auxiliary flow loss"
     )

@@ -42,7 +42,7 @@ from monose3.data.datasets import open_dataset
 from monose3.data.scenes.writer import generate_dataset
 from monose3.errors import run_reporting_errors
 from monose3.method.config import DESIGNS, get_preset, with_section
-from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
 from monose3.method.estimator import PoseEstimator
 from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry
@@ -180,7 +180,7 @@ def run(
         if design:
             config = with_section(config, "network", design=design)
         torch.manual_seed(0)
-        model = Denoiser(config.network)
+        model = build_denoiser(config.network)
         est = PoseEstimator(model, config, device=device)
         helpers = timed_helpers(est)
         for w in batches:

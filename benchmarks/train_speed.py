@@ -30,8 +30,9 @@ from monose3.data.datasets import open_dataset
 from monose3.data.scenes.writer import generate_dataset
 from monose3.errors import run_reporting_errors
 from monose3.method.config import DESIGNS, Config, get_preset, with_section
-from monose3.method.denoiser import Denoiser
-from monose3.training.loop import BatchMaker, Sources, train_step
+from monose3.method.designs import build_denoiser
+from monose3.training.loop import BatchMaker, Sources
+from monose3.training.objective import train_step
 
 GPU_GOAL = {"paper": 3000.0}  # samples/s on one H100 (issue: training that fills a lent GPU)
 
@@ -61,7 +62,7 @@ def measure(config: Config, source: str, frames: list, device: torch.device, ste
     sources = Sources([], synthetic=True) if source == "synthetic" else Sources(frames)
     maker = BatchMaker(config, sources, device, 0, 0, 1)
     timer = TimedRender(maker.renderer, device)
-    model = Denoiser(config.network).to(device)
+    model = build_denoiser(config.network).to(device)
     if device.type == "cuda":
         model = model.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.train.lr)

@@ -12,8 +12,11 @@ import pytest
 import torch
 
 from monose3.data.scenes.sampling import look_at as look_at_rotation
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import euler_xyz_to_matrix
 from monose3.method.config import NetworkConfig, get_preset
-from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
+from monose3.method.flow_pose import Surface, render_surface
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import save_checkpoint
@@ -129,8 +132,34 @@ def save_tiny_checkpoint(path, robot: str = "panda", xy_bias: float = 0.0):
     """A randomly initialised tiny model saved as a checkpoint (``xy_bias`` shifts every v_xy)."""
     torch.manual_seed(0)
     config = get_preset("cpu", network=TINY_NET, robot=robot)
-    model = Denoiser(config.network)
+    model = build_denoiser(config.network)
     with torch.no_grad():
         model.net.fc.bias[0] = xy_bias
     save_checkpoint(path, {"model": model.state_dict(), "config": config.to_dict(), "step": 0})
     return path
+
+
+# ---- denoiser inputs ----
+
+
+def random_poses(n: int, seed: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen))
+    trans = torch.randn(n, 3, generator=gen) * 0.2 + torch.tensor([0.0, 0.0, 1.5])
+    return make_pose(rot, trans)
+
+
+def crop_K(n: int) -> torch.Tensor:
+    K = torch.tensor([[400.0, 0, 160], [0, 410, 120], [0, 0, 1]])
+    return K.repeat(n, 1, 1)
+
+
+def slab_surface(size: tuple[int, int], poses: torch.Tensor | None = None, K: torch.Tensor | None = None) -> Surface:
+    """The visible surface of a render at ``poses`` (default: two of :func:`random_poses`): a slab
+    1.5 m away over the crop's middle."""
+    poses = random_poses(2, 3) if poses is None else poses
+    w, h = size
+    depth = torch.zeros(len(poses), h, w)
+    depth[:, h // 4 : 3 * h // 4, w // 4 : 3 * w // 4] = 1.5
+    K = crop_K(len(poses)) * torch.tensor([[w / 320], [h / 240], [1.0]]) if K is None else K
+    return render_surface(depth, poses, K)

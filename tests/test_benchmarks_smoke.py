@@ -189,11 +189,13 @@ def test_denoiser_designs_judges_trained_weights(tmp_path: Path, keep_threads: N
     import json
 
     from monose3.method.config import get_preset
-    from monose3.method.denoiser import Denoiser
+    from monose3.method.designs import build_denoiser
     from monose3.training.checkpoints import save_checkpoint
 
     config = get_preset("cpu")
-    save_checkpoint(tmp_path / "m.pt", {"model": Denoiser(config.network).state_dict(), "config": config.to_dict()})
+    save_checkpoint(
+        tmp_path / "m.pt", {"model": build_denoiser(config.network).state_dict(), "config": config.to_dict()}
+    )
     bench = load("denoiser_designs")
     argv = ["--held-data", "synthetic", "--held-size", "16", "--weights", str(tmp_path / "m.pt")]
     assert bench.main([*argv, "--pool-dir", str(tmp_path / "pools"), "--out", str(tmp_path / "out")]) == 0

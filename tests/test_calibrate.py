@@ -31,7 +31,7 @@ from monose3.geometry.averaging import (
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import matrix_to_rotvec, rotation_angle, rotvec_to_matrix
 from monose3.method.config import get_preset, with_section
-from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
 from monose3.method.estimator import Estimate, PoseEstimator
 from monose3.robot.jobs import RenderJob
 from monose3.training.checkpoints import save_checkpoint
@@ -164,7 +164,7 @@ def tiny():
     short reverse process, so a frame costs a few small network calls."""
     config = with_section(get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=SIZE)
     config = with_section(config, "inference", ddim_steps=1, direct_steps=1)
-    torch_model = Denoiser(config.network)
+    torch_model = build_denoiser(config.network)
     estimator = PoseEstimator(torch_model, config)
     yield estimator
     estimator.close()

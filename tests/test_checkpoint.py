@@ -2,11 +2,11 @@
 
 import pytest
 import torch
-from conftest import TINY_NET
+from conftest import TINY_NET, slab_surface
 
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset
-from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
 from monose3.training.checkpoints import export_model, load_model, read_checkpoint, save_checkpoint
 
 
@@ -14,7 +14,7 @@ from monose3.training.checkpoints import export_model, load_model, read_checkpoi
 def checkpoint(tmp_path):
     torch.manual_seed(0)
     config = get_preset("cpu", network=TINY_NET)
-    model = Denoiser(config.network)
+    model = build_denoiser(config.network)
     torch.nn.init.normal_(model.net.fc.weight, std=0.01)
     path = tmp_path / "ck.pt"
     save_checkpoint(path, {"model": model.state_dict(), "optimizer": {}, "config": config.to_dict(), "step": 7})
@@ -52,7 +52,8 @@ def test_fp16_export_is_half_the_size_and_predicts_the_same(checkpoint, tmp_path
     x, t = torch.rand(2, 3, 48, 64), torch.tensor([3, 50])
     model.eval()
     with torch.no_grad():
-        assert torch.allclose(loaded(x, x, t), model(x, x, t), atol=2e-3)
+        surface = slab_surface((64, 48))
+        assert torch.allclose(loaded(x, x, t, surface).raw, model(x, x, t, surface).raw, atol=2e-3)
     assert config.network == TINY_NET
 
 

@@ -2,37 +2,15 @@ import math
 
 import pytest
 import torch
+from conftest import crop_K, random_poses, slab_surface
 
-from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_6d_to_matrix
 from monose3.method.config import DESIGNS, Config, NetworkConfig, get_preset, with_section
-from monose3.method.denoiser import Denoiser, local_correlation, timestep_embedding
-from monose3.method.flow_pose import Surface, render_surface
+from monose3.method.denoiser import Denoiser, timestep_embedding
+from monose3.method.designs import DESIGN_CLASSES, FIELD_DESIGNS, build_denoiser
+from monose3.method.designs.blocks import local_correlation
 from monose3.method.loss import disentangled_loss
 from monose3.method.update import apply_update, raw_to_update, true_update, update_to_raw
-
-
-def _poses(n: int, seed: int) -> torch.Tensor:
-    gen = torch.Generator().manual_seed(seed)
-    rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen))
-    trans = torch.randn(n, 3, generator=gen) * 0.2 + torch.tensor([0.0, 0.0, 1.5])
-    return make_pose(rot, trans)
-
-
-def _crop_K(n: int) -> torch.Tensor:
-    K = torch.tensor([[400.0, 0, 160], [0, 410, 120], [0, 0, 1]])
-    return K.repeat(n, 1, 1)
-
-
-def _surface(size: tuple[int, int], poses: torch.Tensor | None = None, K: torch.Tensor | None = None) -> Surface:
-    """The visible surface of a render at ``poses`` (default: two of :func:`_poses`): a slab
-    1.5 m away over the crop's middle."""
-    poses = _poses(2, 3) if poses is None else poses
-    w, h = size
-    depth = torch.zeros(len(poses), h, w)
-    depth[:, h // 4 : 3 * h // 4, w // 4 : 3 * w // 4] = 1.5
-    K = _crop_K(len(poses)) * torch.tensor([[w / 320], [h / 240], [1.0]]) if K is None else K
-    return render_surface(depth, poses, K)
 
 
 def test_gram_schmidt_gives_proper_rotations():
@@ -46,13 +24,13 @@ def test_gram_schmidt_gives_proper_rotations():
 
 
 def test_update_maps_noisy_pose_onto_target_with_true_parameters():
-    h_t, h_0, K = _poses(16, 0), _poses(16, 1), _crop_K(16)
+    h_t, h_0, K = random_poses(16, 0), random_poses(16, 1), crop_K(16)
     v_xy, d_rot, v_z = true_update(h_t, h_0, K)
     assert torch.allclose(apply_update(h_t, v_xy, d_rot, v_z, K), h_0, atol=1e-5)
 
 
 def test_loss_is_zero_for_the_true_update_and_positive_otherwise():
-    h_t, h_0, K = _poses(8, 2), _poses(8, 3), _crop_K(8)
+    h_t, h_0, K = random_poses(8, 2), random_poses(8, 3), crop_K(8)
     points = torch.randn(8, 200, 3) * 0.3
     raw = update_to_raw(*true_update(h_t, h_0, K), render_width=320)
     loss, parts = disentangled_loss(raw, h_t, h_0, K, points, 320)
@@ -68,19 +46,20 @@ def test_loss_is_zero_for_the_true_update_and_positive_otherwise():
 
 def test_zero_output_is_identity_update():
     v_xy, d_rot, v_z = raw_to_update(torch.zeros(3, 9), 320)
-    h_t, K = _poses(3, 4), _crop_K(3)
+    h_t, K = random_poses(3, 4), crop_K(3)
     assert torch.allclose(apply_update(h_t, v_xy, d_rot, v_z, K), h_t, atol=1e-6)
 
 
 def test_denoiser_takes_ten_channels_and_depends_on_t():
     cfg = NetworkConfig(backbone="resnet18", render_size=(64, 48))
-    net = Denoiser(cfg)
+    net = build_denoiser(cfg)
     assert net.net.conv1.in_channels == 10
     torch.nn.init.normal_(net.net.fc.weight, std=0.1)
     net.eval()
     x = torch.rand(2, 3, 48, 64)
-    out_a = net(x, x, torch.tensor([1, 1]))
-    out_b = net(x, x, torch.tensor([90, 90]))
+    surface = slab_surface((64, 48))
+    out_a = net(x, x, torch.tensor([1, 1]), surface).raw
+    out_b = net(x, x, torch.tensor([90, 90]), surface).raw
     assert out_a.shape == (2, 9)
     assert not torch.allclose(out_a, out_b)
 
@@ -94,20 +73,20 @@ def test_timestep_embedding_is_sinusoidal():
 @pytest.mark.parametrize("design", DESIGNS)
 def test_each_design_starts_as_identity_and_learns_from_the_render(design):
     torch.manual_seed(0)
-    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design=design))
+    net = build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design=design))
     render = torch.rand(4, 3, 48, 64, requires_grad=True)
     crop, t = torch.rand(4, 3, 48, 64), torch.tensor([1, 5, 50, 90])
-    h_t, h_0, K = _poses(4, 5), _poses(4, 6), _crop_K(4)
-    surface = _surface((64, 48), h_t, K)
+    h_t, h_0, K = random_poses(4, 5), random_poses(4, 6), crop_K(4)
+    surface = slab_surface((64, 48), h_t, K)
     # A zero head: the identity update at init (Eq. 9 with v_xy = 0, dR = I, v_z = 1).
-    assert torch.allclose(net(render, crop, t, surface), torch.zeros(4, 9), atol=1e-6)
+    assert torch.allclose(net(render, crop, t, surface).raw, torch.zeros(4, 9), atol=1e-6)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
-    raw = net(render, crop, t, surface)
+    raw = net(render, crop, t, surface).raw
     loss, _ = disentangled_loss(raw, h_t, h_0, K, torch.randn(4, 50, 3) * 0.3, 64)
     loss.backward()
     optimizer.step()
     net.eval()
-    (grad,) = torch.autograd.grad(net(render, crop, t, surface).square().sum(), render)
+    (grad,) = torch.autograd.grad(net(render, crop, t, surface).raw.square().sum(), render)
     assert grad.abs().sum() > 0  # the output depends on the render after one step
 
 
@@ -120,16 +99,16 @@ def test_configs_saved_before_the_design_field_load_as_concat():
 
 def test_unknown_design_is_refused():
     with pytest.raises(ValueError, match="design"):
-        Denoiser(NetworkConfig(backbone="resnet18", design="nope"))
+        build_denoiser(NetworkConfig(backbone="resnet18", design="nope"))
 
 
 @pytest.mark.parametrize("design", ["concat-grid", "cost-volume", "flow-solve"])
 def test_grid_designs_give_nine_outputs_at_any_render_size(design):
     for size in ((64, 48), (128, 96), (320, 240)):
-        net = Denoiser(NetworkConfig(backbone="resnet18", render_size=size, design=design)).eval()
+        net = build_denoiser(NetworkConfig(backbone="resnet18", render_size=size, design=design)).eval()
         w, h = size
         render, crop = torch.rand(2, 3, h, w), torch.rand(2, 3, h, w)
-        assert net(render, crop, torch.tensor([3, 70]), _surface(size)).shape == (2, 9)
+        assert net(render, crop, torch.tensor([3, 70]), slab_surface(size)).raw.shape == (2, 9)
 
 
 @pytest.mark.parametrize("design", DESIGNS)
@@ -138,18 +117,18 @@ def test_every_design_round_trips_through_a_checkpoint(design, tmp_path):
 
     config = with_section(get_preset("cpu"), "network", render_size=(64, 48), design=design)
     torch.manual_seed(1)
-    net = Denoiser(config.network)
+    net = build_denoiser(config.network)
     with torch.no_grad():  # non-zero weights everywhere, so the comparison below means something
         for p in net.parameters():
             p.add_(torch.randn_like(p) * 0.01)
     net.eval()
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
-    surface = _surface((64, 48))
+    surface = slab_surface((64, 48))
     save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
     loaded, loaded_config = load_model(tmp_path / "m.pt")
     assert loaded_config.network.design == design
     with torch.no_grad():
-        out, expected = loaded(render, crop, t, surface), net(render, crop, t, surface)
+        out, expected = loaded(render, crop, t, surface).raw, net(render, crop, t, surface).raw
         assert torch.allclose(out, expected, atol=1e-5) and not torch.allclose(out, torch.zeros_like(out))
 
 
@@ -160,17 +139,18 @@ def test_the_so3_output_starts_as_identity_round_trips_and_means_its_rotation(tm
     config = with_section(
         get_preset("cpu"), "network", render_size=(64, 48), design="concat-grid", rotation_output="so3"
     )
-    net = Denoiser(config.network).eval()
+    net = build_denoiser(config.network).eval()
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
+    surface = slab_surface((64, 48))
     with torch.no_grad():
-        assert torch.allclose(net(render, crop, t), torch.zeros(2, 9), atol=1e-6)
+        assert torch.allclose(net(render, crop, t, surface).raw, torch.zeros(2, 9), atol=1e-6)
         for p in net.parameters():
             p.add_(torch.randn_like(p) * 0.01)
     save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
     loaded, saved = load_model(tmp_path / "m.pt")
     assert saved.network.rotation_output == "so3"
     with torch.no_grad():
-        assert torch.allclose(loaded(render, crop, t), net(render, crop, t), atol=1e-6)
+        assert torch.allclose(loaded(render, crop, t, surface).raw, net(render, crop, t, surface).raw, atol=1e-6)
     raw = torch.zeros(2, 9)
     raw[:, 2:5] = torch.tensor([[0.0, 0.0, 0.3], [0.2, -0.1, 0.05]])
     _, d_rot, _ = raw_to_update(so3_raw(raw), 64)
@@ -190,25 +170,48 @@ def test_cost_volume_peaks_at_the_displacement_between_its_inputs():
     assert torch.allclose(inner.max(), torch.tensor(1.0), atol=1e-5)  # normalised features: cosine 1
 
 
-def test_only_the_field_designs_return_a_flow():
+def test_only_the_field_designs_return_a_field():
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([3, 40])
-    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="cost-volume"))
-    raw, flow = net(render, crop, t, with_flow=True)
-    assert raw.shape == (2, 9) and flow.shape == (2, 2, 3, 4)
-    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve"))
-    raw, flow = net(render, crop, t, _surface((64, 48)), with_flow=True)
-    assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 3, 6, 8)  # identity at init
-    with pytest.raises(ValueError, match="needs the render's surface"):
-        net(render, crop, t)
-    net = Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve", field_stride=4))
-    raw, flow = net(render, crop, t, _surface((64, 48)), with_flow=True)
-    assert torch.allclose(raw, torch.zeros(2, 9), atol=1e-6) and flow.shape == (2, 3, 12, 16)
+    surface = slab_surface((64, 48))
+    assert set(FIELD_DESIGNS) == {"cost-volume", "flow-solve"}
+    out = build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="cost-volume"))(
+        render, crop, t, surface
+    )
+    assert out.raw.shape == (2, 9) and out.field.shape == (2, 2, 3, 4)
+    net = build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve"))
+    out = net(render, crop, t, surface)
+    assert torch.allclose(out.raw, torch.zeros(2, 9), atol=1e-6) and out.field.shape == (2, 3, 6, 8)  # identity
+    net = build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="flow-solve", field_stride=4))
+    out = net(render, crop, t, surface)
+    assert torch.allclose(out.raw, torch.zeros(2, 9), atol=1e-6) and out.field.shape == (2, 3, 12, 16)
+    assert (
+        build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48)))(render, crop, t, surface).field is None
+    )
     with pytest.raises(ValueError, match="field_stride must be one of"):
-        Denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", field_stride=2))
-    with pytest.raises(ValueError, match="predicts no flow"):
-        Denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48)))(render, crop, t, with_flow=True)
+        build_denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", field_stride=2))
     with pytest.raises(ValueError, match="rotation_output='6d'"):
-        Denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", rotation_output="so3"))
+        build_denoiser(NetworkConfig(backbone="resnet18", design="flow-solve", rotation_output="so3"))
+
+
+def test_the_registry_builds_every_configured_design_and_only_those():
+    assert tuple(DESIGN_CLASSES) == DESIGNS
+    for design in DESIGNS:
+        net = build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design=design))
+        assert isinstance(net, Denoiser) and type(net) is DESIGN_CLASSES[design]
+
+
+def test_flow_solve_runs_on_the_pretrained_trunk_and_starts_from_imagenet_weights():
+    from monose3.perception.backbone import pretrained_lite0
+
+    config = NetworkConfig(backbone="efficientnet-lite0", render_size=(64, 48), design="flow-solve")
+    net = build_denoiser(config).eval()
+    imagenet = pretrained_lite0().state_dict()
+    assert torch.equal(net.net.fine[0][0].conv.weight, imagenet["_conv_stem.weight"])
+    render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([3, 40])
+    out = net(render, crop, t, slab_surface((64, 48)))
+    assert torch.allclose(out.raw, torch.zeros(2, 9), atol=1e-6) and out.field.shape == (2, 3, 6, 8)
+    with pytest.raises(ValueError, match="unknown backbone"):
+        build_denoiser(NetworkConfig(backbone="efficientnet-lite0", render_size=(64, 48)))
 
 
 def test_a_field_with_a_scale_channel_is_judged_by_the_laplace_likelihood():

@@ -9,7 +9,7 @@ from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.config import get_preset
-from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
 from monose3.method.estimator import INIT_BOX_FRACTION, PoseEstimator
 
 
@@ -18,7 +18,7 @@ def make_estimator(fc_weight=None, seed: int = 0) -> PoseEstimator:
     in place (zeros: every update is the identity)."""
     torch.manual_seed(seed)
     config = get_preset("cpu", network=TINY_NET)
-    model = Denoiser(config.network)
+    model = build_denoiser(config.network)
     if fc_weight is not None:
         with torch.no_grad():
             fc_weight(model.net.fc.weight)

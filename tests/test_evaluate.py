@@ -12,7 +12,7 @@ from monose3.apps.evaluate import evaluate_dataset
 from monose3.apps.track import track_sequence
 from monose3.data.datasets import open_dataset
 from monose3.method.config import get_preset
-from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
 from monose3.method.estimator import PoseEstimator
 from monose3.method.tracking import MODE_FULL
 from monose3.report.metrics import add_per_frame
@@ -25,7 +25,7 @@ def tiny_checkpoint(tmp_path_factory):
 
 def test_add_of_each_frame_matches_the_returned_poses(tiny_dream):
     config = get_preset("cpu", network=TINY_NET)
-    est = PoseEstimator(Denoiser(config.network), config)
+    est = PoseEstimator(build_denoiser(config.network), config)
     frames = open_dataset(tiny_dream, "panda")
     result = evaluate_dataset(est, frames, "tiny", ddim_steps=1, direct_steps=1, batch_size=4, progress=False)
     est.close()

@@ -17,7 +17,7 @@ from monose3.data.dream_writer import write_frame
 from monose3.data.frame import Frame
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset, with_section
-from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
 from monose3.method.estimator import Estimate, PoseEstimator
 from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 from monose3.report.overlays import save_animation
@@ -47,7 +47,7 @@ def sequence(models, renderers):
 def tiny():
     config = with_section(get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=SIZE)
     config = with_section(config, "inference", ddim_steps=1, direct_steps=1)
-    estimator = PoseEstimator(Denoiser(config.network), config)
+    estimator = PoseEstimator(build_denoiser(config.network), config)
     yield estimator
     estimator.close()
 

@@ -18,10 +18,12 @@ from monose3.apps.cli import main
 from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, get_preset, with_section
-from monose3.method.denoiser import INITIAL_FIELD_SCALE, Denoiser
+from monose3.method.designs import build_denoiser
+from monose3.method.designs.cost_volume import INITIAL_FIELD_SCALE
 from monose3.training.checkpoints import read_checkpoint
 from monose3.training.formats import BUNDLED_CHECKPOINT
-from monose3.training.loop import BatchMaker, Sources, learning_rate, train, train_step
+from monose3.training.loop import BatchMaker, Sources, learning_rate, train
+from monose3.training.objective import train_step
 from monose3.training.samples import GlobalSampleSampler
 from monose3.training.shards import SHARD_BYTES, read_shards, split_state, write_shards
 
@@ -80,7 +82,7 @@ def test_overfits_a_fixed_batch(frames):
     torch.manual_seed(0)
     config = tiny_config()
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
-    model = Denoiser(config.network)
+    model = build_denoiser(config.network)
     opt = torch.optim.Adam(model.parameters(), lr=OVERFIT_LR)
     losses = [train_step(model, opt, batch, config, OVERFIT_LR)[0] for _ in range(OVERFIT_STEPS)]
     assert all(map(math.isfinite, losses)), losses
@@ -109,7 +111,7 @@ def test_shards_round_trip_and_continue_a_run(frames, tmp_path):
     weights, meta = read_shards(tmp_path / "a")
     assert meta["step"] == 2 and meta["samples"] == 8 and meta["config"]["preset"] == "cpu"
     assert set(meta["loss"]) == {"loss", "loss_xy", "loss_rot", "loss_z"}
-    model = Denoiser(tiny_config().network)
+    model = build_denoiser(tiny_config().network)
     model.load_state_dict(weights)  # every tensor is there
     # continuing from shards alone: a fresh optimiser, the step and sample count carry on
     second = train(tiny_config(max_steps=4), tmp_path / "b", Sources(frames), init=tmp_path / "a", progress=False)
@@ -118,7 +120,7 @@ def test_shards_round_trip_and_continue_a_run(frames, tmp_path):
 
 
 def test_shards_stay_under_the_size_limit():
-    state = Denoiser(get_preset("paper").network).state_dict()
+    state = build_denoiser(get_preset("paper").network).state_dict()
     groups = split_state(state)
     sizes = [sum(v.numel() * v.element_size() for v in g.values()) for g in groups]
     assert len(groups) >= 2 and max(sizes) <= SHARD_BYTES
@@ -126,7 +128,7 @@ def test_shards_stay_under_the_size_limit():
 
 
 def test_a_damaged_shard_set_is_refused(tmp_path):
-    model = Denoiser(TINY_NET)
+    model = build_denoiser(TINY_NET)
     write_shards(tmp_path, model.state_dict(), {"config": tiny_config().to_dict(), "step": 1})
     shard = sorted(tmp_path.glob("weights-*.pt"))[0]
     data = shard.read_bytes()
@@ -176,7 +178,7 @@ def test_cli_trains_on_synthetic_scenes_for_a_time_budget(tmp_path, capsys):
 def kuka_shards(tmp_path_factory):
     out = tmp_path_factory.mktemp("kuka")
     config = get_preset("cpu", robot="kuka")
-    write_shards(out, Denoiser(config.network).state_dict(), {"config": config.to_dict(), "step": 1})
+    write_shards(out, build_denoiser(config.network).state_dict(), {"config": config.to_dict(), "step": 1})
     return out
 
 
@@ -255,7 +257,7 @@ def test_every_design_trains_and_estimates(frames, design, rotation_output):
 
     config = with_section(tiny_config(rot_weight=3.0), "network", design=design, rotation_output=rotation_output)
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
-    model = Denoiser(config.network)
+    model = build_denoiser(config.network)
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
     assert loss == pytest.approx(parts["xy"] + 3.0 * parts["rot"] + parts["z"], rel=1e-5)
     frame = frames[0]
@@ -269,7 +271,7 @@ def test_every_design_trains_and_estimates(frames, design, rotation_output):
 def test_the_flow_loss_joins_the_field_designs_training_step(frames, design):
     config = with_section(tiny_config(flow_weight=0.5), "network", design=design)
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
-    model = Denoiser(config.network)
+    model = build_denoiser(config.network)
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)
     # the forward process moves the robot, so the field is not zero (flow-solve: Laplace NLL, b at init)
     assert parts["flow"] > (math.log(INITIAL_FIELD_SCALE) if design == "flow-solve" else 0.0)

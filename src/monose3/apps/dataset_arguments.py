@@ -20,7 +20,7 @@ from monose3.apps.options import (
 from monose3.data import validation as v
 from monose3.data.scenes.profiles import PROFILES
 from monose3.errors import Monose3Error
-from monose3.method.config import DESIGNS, FIELD_DESIGNS, FIELD_STRIDES, MAX_CROP_JITTER, ROTATION_OUTPUTS, TRAIN_PRESET
+from monose3.method.config import DESIGNS, FIELD_STRIDES, MAX_CROP_JITTER, ROTATION_OUTPUTS, TRAIN_PRESET
 from monose3.robot.jobs import RENDERERS
 from monose3.training.formats import check_checkpoint
 
@@ -173,6 +173,8 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
             f"--crop-jitter must lie in [0, {MAX_CROP_JITTER}] (a fraction of the crop; more cuts the robot off), "
             f"got {args.crop_jitter}"
         )
+    from monose3.method.designs import FIELD_DESIGNS
+
     if args.flow_weight and args.design not in FIELD_DESIGNS:
         designs = " or ".join(FIELD_DESIGNS)
         raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")

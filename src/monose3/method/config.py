@@ -34,9 +34,7 @@ class DiffusionConfig:
 # The denoiser architectures (method.denoiser): "concat" is the paper's; see docs/DESIGNS.md.
 # The study's other candidates (siamese, siamese-corr, siamese-pose, siamese-grid; the abs6d
 # rotation output) lost and were removed after round 4; DESIGNS.md names the commit that has them.
-DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve")
-# The designs that predict a displacement field (method.flow_pose; TrainConfig.flow_weight trains it).
-FIELD_DESIGNS = ("cost-volume", "flow-solve")
+DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve")  # classes: monose3.method.designs
 FIELD_STRIDES = (4, 8)
 # The crop leaves the robot a margin of (1 - 1 / 1.4) / 2 = 14 % of its size on each side
 # (RoboPose's 1.4); moved by more, the crop cuts the robot off.

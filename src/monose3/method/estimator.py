@@ -171,12 +171,8 @@ class PoseEstimator:
             crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
         with self.timed("network"):
             steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
-            surface = None
-            if self.model.needs_surface:
-                surface = render_surface(
-                    rendered.depth, pose_ref.to(self.device).float(), K_crop.to(self.device).float()
-                )
-            raw = self.model(rendered.rgb, crops.to(self.device), steps, surface).double().cpu()
+            surface = render_surface(rendered.depth, pose_ref.to(self.device).float(), K_crop.to(self.device).float())
+            raw = self.model(rendered.rgb, crops.to(self.device), steps, surface).raw.double().cpu()
         with self.timed("update"):
             v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
             return apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)

@@ -65,6 +65,17 @@ class MBConv(nn.Module):
         return x + y if self.residual else y
 
 
+class _Stem(nn.Module):
+    """The stem convolution, batch norm and ReLU6, for images in [0, 1] (scaled to [-1, 1])."""
+
+    def __init__(self, conv: nn.Module, bn: nn.Module):
+        super().__init__()
+        self.conv, self.bn = conv, bn
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return F.relu6(self.bn(self.conv(image * 2.0 - 1.0)))
+
+
 class EfficientNetLite0(nn.Module):
     """The classifier as published (``forward``: ImageNet logits) and its feature pyramid
     (``features``), for images in [0, 1]."""
@@ -97,6 +108,18 @@ class EfficientNetLite0(nn.Module):
             if i in taps:
                 out.append(x)
         return out
+
+    def pyramid(self) -> tuple[nn.Module, nn.Module, nn.Module]:
+        """The trunk as three modules sharing these weights: image in [0, 1] to stride 4
+        (stem, stages 1-2, 24 channels), stride 4 to 8 (stage 3, 40) and 8 to 16 (stages 4-5, 112)."""
+        ends = self.stage_ends
+        stem = _Stem(self._conv_stem, self._bn0)
+        to_4 = nn.Sequential(stem, *self._blocks[: ends[1] + 1])
+        return (
+            to_4,
+            nn.Sequential(*self._blocks[ends[1] + 1 : ends[2] + 1]),
+            nn.Sequential(*self._blocks[ends[2] + 1 : ends[4] + 1]),
+        )
 
     def drop_classifier(self) -> None:
         """Remove the ImageNet head (1280-channel conv and classifier): a trunk needs :meth:`features` only."""

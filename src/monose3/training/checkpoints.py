@@ -12,6 +12,7 @@ import torch
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, Config
 from monose3.method.denoiser import Denoiser
+from monose3.method.designs import build_denoiser
 from monose3.perception.config import PARSER_KIND, parser_config
 from monose3.perception.parser import RobotParser
 from monose3.training.formats import CHECKPOINT_FORMAT as FORMAT
@@ -87,7 +88,7 @@ def load_model(
             f"checkpoint {Path(path).name} holds a {net.design!r} denoiser with the {net.rotation_output!r} output, "
             "which monose3 no longer builds (removed after the design study, docs/DESIGNS.md); train a new model"
         )
-    model = Denoiser(net)
+    model = build_denoiser(net)
     weights = {k: v.float() for k, v in state["model"].items()}
     model.load_state_dict(weights)
     return model.to(device).eval(), config

@@ -24,13 +24,13 @@ from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser
-from monose3.method.flow_pose import field_targets, render_surface
-from monose3.method.loss import disentangled_loss, flow_loss
+from monose3.method.designs import build_denoiser
 from monose3.method.scheduler import make_noiser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import read_checkpoint, read_weights, save_checkpoint
 from monose3.training.logs import LogWindow, plot_training_logs
+from monose3.training.objective import train_step
 from monose3.training.samples import (
     FrameDataset,
     GlobalSampleSampler,
@@ -84,36 +84,6 @@ def _distributed() -> tuple[int, int, int]:
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
     return int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0")), world
-
-
-def train_step(
-    model: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
-    batch: dict[str, torch.Tensor],
-    config: Config,
-    lr: float,
-    amp=nullcontext,
-) -> tuple[float, dict[str, float]]:
-    """One optimiser step of Alg. 1 on a batch (tensors on the model's device); returns the loss."""
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    surface = render_surface(batch["depth"], batch["pose_ref_t"], batch["K_crop"])
-    with_flow = config.train.flow_weight > 0
-    with amp():
-        out = model(batch["render"], batch["crop"], batch["t"], surface, with_flow=with_flow)
-    raw, flow = out if with_flow else (out, None)
-    poses = (batch["pose_ref_t"], batch["pose_ref_0"], batch["K_crop"], batch["points_ref"])
-    _, parts = disentangled_loss(raw.float(), *poses, config.network.render_size[0])
-    loss = parts["xy"] + config.train.rot_weight * parts["rot"] + parts["z"]
-    if with_flow:
-        targets = field_targets(surface, batch["pose_ref_0"], config.network.render_size, flow.shape[-2:])
-        parts["flow"] = flow_loss(flow.float(), *targets)
-        loss = loss + config.train.flow_weight * parts["flow"]
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(model.parameters(), config.train.grad_clip)
-    optimizer.step()
-    return loss.item(), {k: v.item() for k, v in parts.items()}
 
 
 class BatchMaker:
@@ -243,7 +213,7 @@ class RunState:
 def start_run(config: Config, out: Path, device: torch.device, resume: bool, init: str | Path | None) -> RunState:
     """The model and optimiser: resumed from ``out``'s checkpoint, started from ``init``, or new."""
     torch.manual_seed(config.train.seed)
-    model = Denoiser(config.network).to(device)
+    model = build_denoiser(config.network).to(device)
     if device.type == "cuda":
         model = model.to(memory_format=torch.channels_last)
     run = RunState(model, torch.optim.Adam(model.parameters(), lr=config.train.lr))
