@@ -8,10 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from monose3.errors import Monose3Error
 from monose3.geometry.camera import (
     CROP_MARGIN,
-    check_K,
     crop_boxes,
     crop_images,
     crop_intrinsics,
@@ -260,35 +258,6 @@ def test_standardize_image_grayscale_and_uint8():
     out, _ = standardize_image(img, intrinsics_matrix(500, 500, 320, 180), (640, 480))
     assert out.shape == (480, 640) and out.dtype == np.uint8
     assert out[:360].min() == 255 and out[360:].max() == 0
-
-
-# ---- check_K ---------------------------------------------------------------------------------
-
-
-REAL_CAMERAS = [intrinsics_matrix(615.52, 615.22, 328.26, 251.79), intrinsics_matrix(399.66, 399.5, 319.9, 244.06)]
-
-
-@pytest.mark.parametrize("K", REAL_CAMERAS)
-def test_check_K_accepts_real_cameras(K):  # noqa: N802
-    out = check_K(K.tolist(), (640, 480))
-    assert out.dtype == np.float64 and np.array_equal(out, K)
-
-
-@pytest.mark.parametrize(
-    ("K", "size", "pattern"),
-    [
-        (intrinsics_matrix(-600, 600, 320, 240), (640, 480), "focal lengths must be positive"),
-        (intrinsics_matrix(600, 0, 320, 240), (640, 480), "focal lengths must be positive"),
-        (intrinsics_matrix(600, 600, np.nan, 240), (640, 480), "finite"),
-        (np.eye(4), (640, 480), "3x3 camera matrix"),
-        (intrinsics_matrix(1200, 1200, 960, 540), (640, 480), "principal point .* outside the 640x480"),
-        (intrinsics_matrix(600, 600, 320, -2), (640, 480), "calibrated at 640x480"),
-    ],
-)
-def test_check_K_errors(K, size, pattern):  # noqa: N802
-    with pytest.raises(Monose3Error, match=pattern) as info:
-        check_K(K, size, source="cam.json", plausible=False)
-    assert str(info.value).startswith("cam.json")
 
 
 def test_projection_jacobian_matches_finite_differences():

@@ -20,6 +20,7 @@ from monose3.apps.cli import main
 from monose3.data import validation
 from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
+from monose3.geometry.camera import intrinsics_matrix
 from monose3.report.metrics import summarize
 from monose3.robot import RobotModel
 
@@ -402,3 +403,32 @@ def test_generated_folders_nominal_camera_is_refused_and_the_frame_json_accepted
     assert "nominal camera" in capsys.readouterr().err
     assert main([*args, "--camera", str(frame_json)]) in (0, 2)  # accepted as a camera (the tiny model may miss)
     assert "camera" not in capsys.readouterr().err
+
+
+# ---- check_K ---------------------------------------------------------------------------------
+
+
+REAL_CAMERAS = [intrinsics_matrix(615.52, 615.22, 328.26, 251.79), intrinsics_matrix(399.66, 399.5, 319.9, 244.06)]
+
+
+@pytest.mark.parametrize("K", REAL_CAMERAS)
+def test_check_K_accepts_real_cameras(K):  # noqa: N802
+    out = validation.check_K(K.tolist(), (640, 480))
+    assert out.dtype == np.float64 and np.array_equal(out, K)
+
+
+@pytest.mark.parametrize(
+    ("K", "size", "pattern"),
+    [
+        (intrinsics_matrix(-600, 600, 320, 240), (640, 480), "focal lengths must be positive"),
+        (intrinsics_matrix(600, 0, 320, 240), (640, 480), "focal lengths must be positive"),
+        (intrinsics_matrix(600, 600, np.nan, 240), (640, 480), "finite"),
+        (np.eye(4), (640, 480), "3x3 camera matrix"),
+        (intrinsics_matrix(1200, 1200, 960, 540), (640, 480), "principal point .* outside the 640x480"),
+        (intrinsics_matrix(600, 600, 320, -2), (640, 480), "calibrated at 640x480"),
+    ],
+)
+def test_check_K_errors(K, size, pattern):  # noqa: N802
+    with pytest.raises(Monose3Error, match=pattern) as info:
+        validation.check_K(K, size, source="cam.json", plausible=False)
+    assert str(info.value).startswith("cam.json")

@@ -173,11 +173,12 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
             f"--crop-jitter must lie in [0, {MAX_CROP_JITTER}] (a fraction of the crop; more cuts the robot off), "
             f"got {args.crop_jitter}"
         )
-    from monose3.method.designs import FIELD_DESIGNS
+    if args.flow_weight:
+        from monose3.method.designs import FIELD_DESIGNS  # torch: only where a field loss is asked for
 
-    if args.flow_weight and args.design not in FIELD_DESIGNS:
-        designs = " or ".join(FIELD_DESIGNS)
-        raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")
+        if args.design not in FIELD_DESIGNS:
+            designs = " or ".join(FIELD_DESIGNS)
+            raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")
     if args.field_stride is not None and args.design != "flow-solve":
         raise Monose3Error("--field-stride sets the flow-solve design's field; pass --design flow-solve")
     if args.design == "flow-solve" and args.rotation_output not in (None, "6d"):

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from monose3.atomic import write_text
 from monose3.data.dream import UNREAL_TO_OPENCV
 from monose3.data.inputs import CAMERA_SETTINGS
 from monose3.errors import Monose3Error
@@ -19,13 +19,6 @@ from monose3.geometry.camera import project
 from monose3.geometry.poses import transform_points
 from monose3.geometry.rotations import matrix_to_quat_xyzw
 from monose3.robot import RobotModel, RobotSpec
-
-
-def _json_dump(path: Path, data: object) -> None:
-    """Write JSON atomically: a frame's JSON exists only once it is complete."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
 
 
 def write_camera_settings(folder: str | Path, K: np.ndarray, width: int, height: int) -> Path:
@@ -53,7 +46,7 @@ def write_camera_settings(folder: str | Path, K: np.ndarray, width: int, height:
         ]
     }
     path = folder / CAMERA_SETTINGS
-    _json_dump(path, data)
+    write_text(path, json.dumps(data, indent=1))
     return path
 
 
@@ -148,7 +141,7 @@ def write_frame(
     path = folder / f"{stem}.json"
     try:
         (folder / f"{stem}.rgb.jpg").write_bytes(buf.tobytes())
-        _json_dump(path, record)
+        write_text(path, json.dumps(record, indent=1))  # a frame's JSON exists only once complete
     except OSError as err:
         raise Monose3Error(
             f"cannot write frame {stem} to {folder}: {err}; check free disk space and permissions"

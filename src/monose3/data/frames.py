@@ -18,6 +18,7 @@ import numpy as np
 from monose3.data.datasets import open_dataset
 from monose3.data.frame import Frame
 from monose3.data.inputs import load_camera, load_joints
+from monose3.data.validation import check_K
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import Intrinsics
 from monose3.robot import RobotModel
@@ -74,8 +75,6 @@ def load_plain_frames(folder: str | Path, robot: RobotModel) -> list[Frame]:
             f"no camera.json in {folder}; add the intrinsics as camera.json {{fx, fy, cx, cy, width, height}}"
         )
     camera: Intrinsics = load_camera(camera_file)
-    from monose3.geometry.camera import check_K
-
     check_K(camera.K, camera.size, str(camera_file))  # implausible focal length, K for another size
     frames = []
     for image_name, stem in images:

@@ -33,11 +33,15 @@ import numpy as np
 
 from monose3.data.inputs import check_image_camera, load_joints, pose_from_obj
 from monose3.errors import Monose3Error
-from monose3.geometry.camera import Intrinsics, check_K, project
+from monose3.geometry.camera import Intrinsics, project
 from monose3.robot import RobotModel
 
 SAMPLERS = ("fit", "revdiff", "directreg")  # "fit": perception.fitting; the others the paper's
 
+# fx and fy in multiples of the image width: 0.1 x is a 157 deg field of view, 10 x a 5.7 deg one.
+FOCAL_RANGE = (0.1, 10.0)
+# The principal point may sit at most this fraction of the image size away from the centre.
+PRINCIPAL_POINT_OFFSET = 0.22
 # The smallest image side the network can see a robot in.
 MIN_IMAGE_SIDE = 32
 # A prior that puts the robot's keypoints (mean) closer or further than this is refused.
@@ -110,6 +114,36 @@ def check_image(image: Any, source: str = "image", content: bool = True) -> np.n
 
 
 # ---- intrinsics --------------------------------------------------------------------------------
+
+
+def check_K(K: Any, image_size: tuple[int, int], source: str = "K", plausible: bool = True) -> np.ndarray:  # noqa: N802
+    """A float64 3x3 camera matrix for an image of ``image_size`` = (width, height): a valid
+    pinhole camera (:meth:`Intrinsics.from_K`) and, with ``plausible``, focal lengths within
+    ``FOCAL_RANGE`` x width and the principal point near the centre (a K for another image
+    size, or in other units, fails these)."""
+    camera = Intrinsics.from_K(K, int(image_size[0]), int(image_size[1]), source)
+    if plausible:
+        check_plausible(camera, source)
+    return camera.K
+
+
+def check_plausible(camera: Intrinsics, source: str) -> None:
+    """Refuse intrinsics no real camera at this image size has (see :func:`check_K`)."""
+    (lo, hi), w, h = FOCAL_RANGE, camera.width, camera.height
+    for name, f in (("fx", camera.fx), ("fy", camera.fy)):
+        if not lo * w <= f <= hi * w:
+            raise Monose3Error(
+                f"{source}: {name} = {f:g} px is implausible for a {w}-pixel-wide image (expected "
+                f"{lo * w:g}-{hi * w:g}, {lo:g}-{hi:g} x the width); give the focal length in pixels, "
+                f"calibrated at {w}x{h}"
+            )
+    cx, cy, off = camera.cx, camera.cy, PRINCIPAL_POINT_OFFSET
+    if abs(cx - (w - 1) / 2) > off * w or abs(cy - (h - 1) / 2) > off * h:
+        raise Monose3Error(
+            f"{source}: principal point ({cx:g}, {cy:g}) is far from the centre of the {w}x{h} image, the sign of "
+            f"a K for another image size; give intrinsics calibrated at {w}x{h} "
+            "(for a resized image: monose3.scale_camera)"
+        )
 
 
 def check_camera(camera: Intrinsics, image: np.ndarray, source: str = "camera") -> np.ndarray:

@@ -17,14 +17,10 @@ import cv2
 import numpy as np
 
 from monose3.errors import Monose3Error
-from monose3.geometry.rotations import array_module
+from monose3.geometry.arrays import array_module
 
 CROP_MARGIN = 1.4  # RoboPose: the crop box is the robot's extent about its centre, grown by 1.4
 PROJECTION_EPS_DEPTH = 1e-6  # metres: projection divides by at least this (points behind the camera stay finite)
-# fx and fy in multiples of the image width: 0.1 x is a 157 deg field of view, 10 x a 5.7 deg one.
-FOCAL_RANGE = (0.1, 10.0)
-# The principal point may sit at most this fraction of the image size away from the centre.
-PRINCIPAL_POINT_OFFSET = 0.22
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
@@ -69,23 +65,46 @@ class Intrinsics:
 
     @classmethod
     def checked(cls, fx: Any, fy: Any, cx: Any, cy: Any, width: Any, height: Any, source: str = "camera") -> Intrinsics:
-        """Validate and build; every check names the value that is wrong."""
+        """Validate and build: the invariants of a pinhole camera (positive whole image size,
+        finite positive focal lengths, the principal point inside the image); every check names
+        the value that is wrong. Whether the values are plausible for a real camera is the input
+        checks' call (``monose3.data.validation.check_K``)."""
         fx, fy, cx, cy = (_number(v, k, source) for v, k in ((fx, "fx"), (fy, "fy"), (cx, "cx"), (cy, "cy")))
         w, h = _number(width, "width", source), _number(height, "height", source)
         if not (w.is_integer() and h.is_integer() and w > 0 and h > 0):
             raise Monose3Error(f"{source}: image width/height must be positive whole pixels, got {width}x{height}")
         if not all(math.isfinite(v) for v in (fx, fy, cx, cy)):
             raise Monose3Error(f"{source}: intrinsics must be finite numbers (fx={fx}, fy={fy}, cx={cx}, cy={cy})")
-        check_K(intrinsics_matrix(fx, fy, cx, cy), (int(w), int(h)), source, plausible=False)
+        if fx <= 0 or fy <= 0:
+            raise Monose3Error(
+                f"{source}: focal lengths must be positive pixels (fx={fx:g}, fy={fy:g}); fix the calibration"
+            )
+        if not (0 < cx < w and 0 < cy < h):
+            raise Monose3Error(
+                f"{source}: principal point ({cx:g}, {cy:g}) lies outside the {w:g}x{h:g} image; "
+                f"give intrinsics calibrated at {w:g}x{h:g}"
+            )
         return cls(fx, fy, cx, cy, int(w), int(h))
 
     @classmethod
-    def from_K(cls, K: np.ndarray, width: int, height: int, source: str = "camera") -> Intrinsics:  # noqa: N802
-        """Build and validate from a 3x3 matrix (skew must be zero)."""
-        K = np.asarray(K, dtype=np.float64)
+    def from_K(cls, K: Any, width: int, height: int, source: str = "camera") -> Intrinsics:  # noqa: N802
+        """Build and validate from a 3x3 matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (zero skew)."""
+        try:
+            K = np.asarray(K, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise Monose3Error(f"{source} must be a 3x3 camera matrix of numbers, got {K!r}") from None
         if K.shape != (3, 3):
-            raise Monose3Error(f"{source}: the camera matrix must be 3x3 (9 numbers), got shape {K.shape}")
-        _check_skew(K, source)
+            raise Monose3Error(
+                f"{source} must be a 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K.shape}"
+            )
+        if not np.isfinite(K).all():
+            raise Monose3Error(f"{source} contains NaN or infinity; give finite intrinsics in pixels")
+        if not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 1e-9:
+            raise Monose3Error(
+                f"{source} must have the form [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]; got rows {K.tolist()}"
+            )
+        if abs(K[0, 1]) > 1e-6 * max(abs(K[0, 0]), 1.0):
+            raise Monose3Error(f"{source}: camera matrix has non-zero skew {K[0, 1]:g}; give a zero-skew calibration")
         return cls.checked(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height, source)
 
 
@@ -108,61 +127,6 @@ def scale_K(K: np.ndarray, size: tuple[int, int], new_size: tuple[int, int]) -> 
     out[0, 0], out[1, 1] = K[0, 0] * (new_w / w), K[1, 1] * (new_h / h)
     out[0, 2], out[1, 2] = (K[0, 2] + 0.5) * new_w / w - 0.5, (K[1, 2] + 0.5) * new_h / h - 0.5
     return out
-
-
-def _check_skew(K: np.ndarray, source: str) -> None:
-    if abs(K[0, 1]) > 1e-6 * max(abs(K[0, 0]), 1.0):
-        raise Monose3Error(f"{source}: camera matrix has non-zero skew {K[0, 1]:g}; give a zero-skew calibration")
-
-
-def check_K(K: Any, image_size: tuple[int, int], source: str = "K", plausible: bool = True) -> np.ndarray:  # noqa: N802
-    """A float64 3x3 camera matrix for an image of ``image_size`` = (width, height).
-
-    ``plausible``: also refuse focal lengths outside ``FOCAL_RANGE`` x width and a principal
-    point far from the centre (the signs of a K for another image size, or of other units)."""
-    try:
-        K = np.asarray(K, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise Monose3Error(f"{source} must be a 3x3 camera matrix of numbers, got {K!r}") from None
-    if K.shape != (3, 3):
-        raise Monose3Error(f"{source} must be a 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K.shape}")
-    if not np.isfinite(K).all():
-        raise Monose3Error(f"{source} contains NaN or infinity; give finite intrinsics in pixels")
-    if not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 1e-9:
-        raise Monose3Error(f"{source} must have the form [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]; got rows {K.tolist()}")
-    _check_skew(K, source)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    if fx <= 0 or fy <= 0:
-        raise Monose3Error(
-            f"{source}: focal lengths must be positive pixels (fx={fx:g}, fy={fy:g}); fix the calibration"
-        )
-    w, h = int(image_size[0]), int(image_size[1])
-    if not (0 < cx < w and 0 < cy < h):
-        raise Monose3Error(
-            f"{source}: principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image; "
-            f"give intrinsics calibrated at {w}x{h}"
-        )
-    if plausible:
-        _check_plausible(K, w, h, source)
-    return K
-
-
-def _check_plausible(K: np.ndarray, w: int, h: int, source: str) -> None:
-    lo, hi = FOCAL_RANGE
-    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
-        if not lo * w <= f <= hi * w:
-            raise Monose3Error(
-                f"{source}: {name} = {f:g} px is implausible for a {w}-pixel-wide image (expected "
-                f"{lo * w:g}-{hi * w:g}, {lo:g}-{hi:g} x the width); give the focal length in pixels, "
-                f"calibrated at {w}x{h}"
-            )
-    cx, cy, off = K[0, 2], K[1, 2], PRINCIPAL_POINT_OFFSET
-    if abs(cx - (w - 1) / 2) > off * w or abs(cy - (h - 1) / 2) > off * h:
-        raise Monose3Error(
-            f"{source}: principal point ({cx:g}, {cy:g}) is far from the centre of the {w}x{h} image, the sign of "
-            f"a K for another image size; give intrinsics calibrated at {w}x{h} "
-            "(for a resized image: monose3.scale_camera)"
-        )
 
 
 def project(points, K):

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from monose3.geometry.rotations import array_module, euler_xyz_to_matrix, procrustes
+from monose3.geometry.arrays import array_module
+from monose3.geometry.rotations import euler_xyz_to_matrix, procrustes
 
 
 def make_pose(rot, trans):

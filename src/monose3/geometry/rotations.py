@@ -10,17 +10,11 @@ SVD or Shepperd's method are numpy only.
 
 from __future__ import annotations
 
-import sys
 from types import ModuleType
 
 import numpy as np
 
-
-def array_module(x: object) -> ModuleType:
-    """``torch`` for a tensor, else ``numpy`` (without importing torch when it is not loaded)."""
-    if type(x).__module__.startswith("torch"):
-        return sys.modules["torch"]
-    return np
+from monose3.geometry.arrays import array_module
 
 
 def _normalize(v, xp: ModuleType, eps: float = 1e-8):

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monose3.atomic import atomic_path
 from monose3.errors import Monose3Error
 
 DEFAULT_COLOR = (0.7, 0.7, 0.7)
@@ -70,14 +71,15 @@ class RobotMesh:
         return closed
 
     def save(self, path: str | Path) -> None:
-        np.savez_compressed(
-            path,
-            links=np.array(self.links),
-            vertices=self.vertices.astype(np.float32),
-            vertex_link=self.vertex_link.astype(np.int16),
-            faces=self.faces.astype(np.int32),
-            face_colors=np.round(self.face_colors * 255).astype(np.uint8),
-        )
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:  # a file object: numpy adds no ".npz"
+            np.savez_compressed(
+                fh,
+                links=np.array(self.links),
+                vertices=self.vertices.astype(np.float32),
+                vertex_link=self.vertex_link.astype(np.int16),
+                faces=self.faces.astype(np.int32),
+                face_colors=np.round(self.face_colors * 255).astype(np.uint8),
+            )
 
     @staticmethod
     def load(path: str | Path) -> RobotMesh:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from monose3.atomic import atomic_path
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, Config
 from monose3.method.denoiser import Denoiser
@@ -21,16 +20,8 @@ from monose3.training.formats import CHECKPOINT_FORMAT as FORMAT
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     """Write ``state`` to ``path`` via a temporary file and an atomic rename, so a crash or
     ``kill -9`` leaves either the old or the new checkpoint, never a torn one."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         torch.save({"format": FORMAT, **state}, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -12,29 +12,17 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from monose3.atomic import write_bytes, write_text
 from monose3.errors import Monose3Error
 from monose3.training.formats import SHARD_INDEX as INDEX
 
 FORMAT = "monose3-shards-v1"
 SHARD_BYTES = 15 * 2**20  # under the 16 MiB a lent machine returns per file, with room for pickling
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _serialise(tensors: dict[str, torch.Tensor]) -> bytes:
@@ -70,11 +58,11 @@ def write_shards(folder: str | Path, state: dict[str, torch.Tensor], meta: dict[
     for i, group in enumerate(split_state(state)):
         data = _serialise(group)
         name = f"weights-{step:08d}-{i:02d}.pt"
-        _atomic_write(folder / name, data)
+        write_bytes(folder / name, data)
         entries.append({"file": name, "sha256": hashlib.sha256(data).hexdigest(), "tensors": list(group)})
     index = folder / INDEX
     previous = _listed_files(index)
-    _atomic_write(index, json.dumps({"format": FORMAT, **meta, "shards": entries}, indent=1).encode())
+    write_text(index, json.dumps({"format": FORMAT, **meta, "shards": entries}, indent=1))
     for name in previous - {e["file"] for e in entries}:
         (folder / name).unlink(missing_ok=True)
     return index
