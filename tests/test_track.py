@@ -12,9 +12,10 @@ import pytest
 from conftest import look_at
 
 from monose3.apps.cli import main
-from monose3.apps.track import load_joints_csv, load_joints_dir, read_video, track_sequence, video_frames
+from monose3.apps.track import load_joints_csv, load_joints_dir, track_sequence
 from monose3.data.dream_writer import write_frame
 from monose3.data.frame import Frame
+from monose3.data.video import read_video, video_frames
 from monose3.errors import Monose3Error
 from monose3.method.config import get_preset, with_section
 from monose3.method.designs import build_denoiser

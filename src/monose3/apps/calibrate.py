@@ -40,14 +40,73 @@ import argparse
 import json
 import logging
 from pathlib import Path
+from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
 
 from monose3 import atomic
-from monose3.calibration import CalibrationResult, calibrate, overlay_grid
+from monose3.apps.arguments import (
+    DEVICE_HELP,
+    add_model_arguments,
+    check_non_negative,
+    check_parser_file,
+    robot_model,
+)
+from monose3.data import validation as v
 from monose3.data.frames import format_skipped, load_frames
-from monose3.report.overlays import save_image
+from monose3.errors import Monose3Error
+from monose3.training.formats import check_checkpoint
+
+if TYPE_CHECKING:
+    from monose3.calibration import CalibrationResult
+
+
+def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--frames",
+        required=True,
+        help="folder of NNNN.png|jpg + NNNN.joints.json + camera.json, or a DREAM folder (then the error vs ground "
+        "truth is reported)",
+    )
+    add_model_arguments(p, 1, "stochastic chains per frame; >1 also rejects frames whose chains disagree")
+    p.add_argument(
+        "--out",
+        default="monose3_calibration",
+        help="folder for calibration.json/.yaml and the overlay (default: monose3_calibration)",
+    )
+    p.add_argument("--batch-size", type=int, default=4, help="frames estimated together (default 4)")
+    p.add_argument("--limit", type=int, help="use only the first N frames")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
+    p.add_argument(
+        "--consensus-k",
+        type=float,
+        default=3.0,
+        help="reject frames beyond median + k * sigma_MAD of the residuals to the first robust fusion (default 3)",
+    )
+    p.add_argument("--overlay-frames", type=int, default=6, help="frames in the overlay grid (default 6; 0: none)")
+
+
+def check_calibrate(args: argparse.Namespace) -> SimpleNamespace:
+    chains = v.check_chains(args.chains, "--chains")
+    check_parser_file(args.parser)
+    v.check_count(args.batch_size, "--batch-size")
+    if args.limit is not None:
+        v.check_count(args.limit, "--limit")
+    check_non_negative(args.overlay_frames, "--overlay-frames")
+    if not args.consensus_k > 0:
+        raise Monose3Error(f"--consensus-k must be positive, got {args.consensus_k}")
+    v.check_input_dir(args.frames, "--frames")
+    out = v.check_output_dir(args.out, "--out")
+    robot = robot_model(check_checkpoint(args.checkpoint, args.robot))
+    frames = None
+    if robot is not None:
+        frames = load_frames(args.frames, robot)
+        if args.limit is not None:
+            frames = frames[: args.limit]
+    return SimpleNamespace(chains=chains, out=out, frames=frames)
+
 
 log = logging.getLogger("monose3")
 
@@ -123,7 +182,8 @@ def write_calibration_files(result: CalibrationResult, out: str | Path) -> tuple
 
 def run_calibrate(args: argparse.Namespace) -> int:
     from monose3.api import load_estimator
-    from monose3.apps.arguments import check_calibrate
+    from monose3.calibration import calibrate, overlay_grid
+    from monose3.report.overlays import save_image
 
     checked = getattr(args, "checked_inputs", None) or check_calibrate(args)  # inputs read before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device, parser=args.parser)

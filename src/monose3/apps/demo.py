@@ -6,16 +6,36 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
-from monose3.api import ASSETS, estimate_pose, format_pose, load_estimator, overlay_image, write_pose_files
+from monose3.apps.arguments import (
+    CHAINS_HELP,
+    CHECKPOINT_HELP,
+)
+from monose3.data import validation as v
 from monose3.data.inputs import load_camera, load_image, load_joints
 from monose3.geometry.rotations import rotation_angle
 from monose3.report.metrics import add_per_frame
-from monose3.report.overlays import save_image
+from monose3.training.formats import check_checkpoint
 
-SAMPLE = ASSETS / "sample"
+
+def add_demo_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--out",
+        default="monose3_demo",
+        help="folder for pose.json, pose.yaml and overlay.png (default: monose3_demo; created if missing)",
+    )
+    p.add_argument("--checkpoint", help=CHECKPOINT_HELP + "; it must be a Panda model")
+    p.add_argument("--chains", type=int, default=4, help=f"{CHAINS_HELP} (default 4)")
+
+
+def check_demo(args: argparse.Namespace) -> SimpleNamespace:
+    chains = v.check_chains(args.chains, "--chains")
+    out = v.check_output_dir(args.out, "--out")
+    check_checkpoint(args.checkpoint, "panda")
+    return SimpleNamespace(chains=chains, out=out)
 
 
 def pose_errors(robot, joints: np.ndarray, pred: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -29,15 +49,18 @@ def pose_errors(robot, joints: np.ndarray, pred: np.ndarray, truth: np.ndarray) 
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from monose3.apps.arguments import check_demo
+    from monose3.api import ASSETS, estimate_pose, format_pose, load_estimator, overlay_image, write_pose_files
+    from monose3.report.overlays import save_image
+
+    sample = ASSETS / "sample"
 
     checked = getattr(args, "checked_inputs", None) or check_demo(args)
-    image = load_image(SAMPLE / "image.jpg")
-    camera = load_camera(SAMPLE / "camera.json")
-    truth = np.asarray(json.loads((SAMPLE / "ground_truth.json").read_text())["camera_from_base"])
+    image = load_image(sample / "image.jpg")
+    camera = load_camera(sample / "camera.json")
+    truth = np.asarray(json.loads((sample / "ground_truth.json").read_text())["camera_from_base"])
     estimator = load_estimator(args.checkpoint, robot="panda")
     try:
-        joints = load_joints(SAMPLE / "joints.json", estimator.robot)
+        joints = load_joints(sample / "joints.json", estimator.robot)
         result = estimate_pose(estimator, image, joints, camera.K, chains=checked.chains)
     finally:
         estimator.close()
@@ -49,7 +72,7 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     write_pose_files(result, out)
     png = save_image(out / "overlay.png", overlay)
-    print(f"sample scene: {SAMPLE.name} ({camera.width}x{camera.height}), robot {estimator.robot.name}")
+    print(f"sample scene: {sample.name} ({camera.width}x{camera.height}), robot {estimator.robot.name}")
     print(format_pose(result))
     print(
         f"error vs ground truth: ADD {err['add_mm']:.1f} mm, translation {err['translation_mm']:.1f} mm, "

@@ -31,15 +31,24 @@ import json
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 
+from monose3.apps.arguments import (
+    CHECKPOINT_HELP,
+    DEVICE_HELP,
+    PARSER_HELP,
+    ROBOT_HELP,
+    check_parser_file,
+    robot_model,
+)
 from monose3.atomic import atomic_path, write_text
-from monose3.data.frame import Frame
+from monose3.data import validation as v
 from monose3.data.frames import (
     format_skipped,
     load_frames,
@@ -47,12 +56,95 @@ from monose3.data.frames import (
     load_joints_dir,
     skipped_annotations,
 )
-from monose3.data.inputs import load_camera
+from monose3.data.video import video_frames
 from monose3.errors import Monose3Error
-from monose3.method.tracking import MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
+from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 from monose3.report.metrics import FAILURE_MM
 from monose3.report.overlays import pose_overlays, save_animation
 from monose3.robot import RobotModel
+from monose3.training.formats import check_checkpoint
+
+
+def add_track_arguments(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--frames", help="DREAM folder or folder of NNNN.png + NNNN.joints.json + camera.json")
+    src.add_argument("--video", help="video file (MP4, AVI, GIF...); needs --camera and --joints-csv or --joints")
+    jsrc = p.add_mutually_exclusive_group()
+    jsrc.add_argument("--joints-csv", help="with --video: CSV, header = joint names, one row per frame (radians)")
+    jsrc.add_argument("--joints", help="with --video: folder with one joints JSON per frame (name order)")
+    p.add_argument("--camera", help="with --video: intrinsics file (JSON {fx, fy, cx, cy, width, height}, ...)")
+    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
+    p.add_argument("--parser", help=PARSER_HELP)
+    p.add_argument("--robot", help=ROBOT_HELP)
+    p.add_argument(
+        "--sampler",
+        choices=["fit", "revdiff"],
+        help="fit: refinement on the robot parser's mask and keypoints each frame (default where there is a parser); "
+        "revdiff: the paper's one step at a small t",
+    )
+    p.add_argument(
+        "--out",
+        default="monose3_track",
+        help="folder for poses.jsonl, poses.csv and track.gif (default: monose3_track)",
+    )
+    p.add_argument("--limit", type=int, help="track only the first N frames of --frames")
+    p.add_argument("--reinit-every", type=int, help="run the full process every N frames as well")
+    more = "re-initialise when one step"
+    p.add_argument("--max-step-mm", type=float, default=MAX_STEP_MM, help=f"{more} moves more [{MAX_STEP_MM:g}]")
+    p.add_argument("--max-step-deg", type=float, default=MAX_STEP_DEG, help=f"{more} rotates more [{MAX_STEP_DEG:g}]")
+    p.add_argument("--gif-every", type=int, default=1, help="put every N-th frame in track.gif (default 1; 0: no GIF)")
+    p.add_argument("--fps", type=float, default=10.0, help="frame rate of track.gif (default 10)")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
+
+
+def check_track_args(args: argparse.Namespace) -> None:
+    """Argument combinations, checked before the model is loaded."""
+    if args.limit is not None and args.limit < 1:
+        raise Monose3Error(f"--limit must be at least 1, got {args.limit}")
+    if args.gif_every < 0:
+        raise Monose3Error(f"--gif-every must be >= 0, got {args.gif_every}")
+    if args.reinit_every is not None:
+        v.check_count(args.reinit_every, "--reinit-every")
+    if not args.fps > 0:
+        raise Monose3Error(f"--fps must be positive, got {args.fps}")
+    if args.frames is not None:
+        if args.joints_csv or args.joints or args.camera:
+            raise Monose3Error(
+                "--joints-csv/--joints/--camera go with --video; a --frames folder holds its own joints and camera"
+            )
+        return
+    if not Path(args.video).is_file():
+        raise Monose3Error(f"video not found: {args.video}; check the path")
+    if not args.camera:
+        raise Monose3Error("--video needs --camera FILE with the intrinsics {fx, fy, cx, cy, width, height}")
+    if not (args.joints_csv or args.joints):
+        raise Monose3Error("--video needs the joints of every frame: --joints-csv FILE or --joints DIR")
+
+
+def check_track(args: argparse.Namespace) -> SimpleNamespace:
+    check_track_args(args)
+    check_parser_file(args.parser)
+    out = v.check_output_dir(args.out, "--out")
+    robot = check_checkpoint(args.checkpoint, args.robot)
+    frames = video_joints = None
+    if args.frames is not None:
+        v.check_input_dir(args.frames, "--frames")
+        if robot is not None:
+            frames = load_frames(args.frames, robot_model(robot))
+            frames = frames[: args.limit] if args.limit is not None else frames
+    else:
+        from monose3.data.inputs import load_camera
+
+        camera = load_camera(args.camera)
+        v.check_K(camera.K, camera.size, args.camera)
+        if robot is not None:
+            model = robot_model(robot)
+            if args.joints_csv:
+                video_joints = load_joints_csv(args.joints_csv, model)
+            else:
+                video_joints = load_joints_dir(args.joints, model)
+    return SimpleNamespace(out=out, frames=frames, video_joints=video_joints)
+
 
 GIF_TILE_WIDTH = 320
 PRINT_ALL_FRAMES = 40
@@ -148,81 +240,6 @@ def track_sequence(
     return out
 
 
-# ---- video input -----------------------------------------------------------------------------
-
-
-def read_video(path: str | Path) -> Iterator[np.ndarray]:
-    """The frames of a video file as RGB uint8 arrays (OpenCV's FFmpeg; imageio/Pillow for what
-    OpenCV cannot open, such as GIFs on some builds)."""
-    p = Path(path)
-    if not p.is_file():
-        raise Monose3Error(f"video not found: {p}; check the path")
-    cap = cv2.VideoCapture(str(p))
-    count = 0
-    try:
-        while cap.isOpened():
-            ok, bgr = cap.read()
-            if not ok:
-                break
-            count += 1
-            yield cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    finally:
-        cap.release()
-    if count:
-        return
-    import imageio.v3 as iio
-
-    try:
-        frames = iio.imiter(p)
-        for frame in frames:
-            img = np.asarray(frame)
-            if img.ndim == 2:
-                img = np.repeat(img[:, :, None], 3, axis=2)
-            yield np.ascontiguousarray(img[:, :, :3]).astype(np.uint8, copy=False)
-            count += 1
-    except Exception as err:  # noqa: BLE001 - any decoder failure means the same to the user
-        if count:
-            raise Monose3Error(f"video {p} is corrupt after frame {count} ({type(err).__name__})") from None
-        raise Monose3Error(
-            f"cannot read video {p} ({type(err).__name__}); convert it to MP4 (H.264) or a folder of PNG frames"
-        ) from None
-    if not count:
-        raise Monose3Error(f"video {p} has no frames; check the file")
-
-
-def count_video_frames(path: str | Path) -> int:
-    """Number of decodable frames (counted by grabbing, not from the header, which can be wrong)."""
-    cap = cv2.VideoCapture(str(path))
-    n = 0
-    try:
-        while cap.isOpened() and cap.grab():
-            n += 1
-    finally:
-        cap.release()
-    return n if n else sum(1 for _ in read_video(path))
-
-
-def video_frames(
-    video: str | Path, camera_file: str | Path, joints: np.ndarray, names: Sequence[str] | None = None
-) -> Iterator[Frame]:
-    """The frames of a video with their joints. The camera file and the frame count are checked
-    here, before anything is estimated; the frames are then decoded one at a time."""
-    camera = load_camera(camera_file)
-    n = count_video_frames(video)
-    if n != len(joints):
-        raise Monose3Error(
-            f"video {Path(video).name} has {n} frames but {len(joints)} joint rows were given; "
-            "give exactly one row (file) of joints per video frame"
-        )
-
-    def frames() -> Iterator[Frame]:
-        for i, image in enumerate(read_video(video)):
-            name = names[i] if names is not None and names[i] else f"{i:06d}"
-            yield Frame(name, camera.K, camera.size, joints[i], image=image)
-
-    return frames()
-
-
 # ---- command line ------------------------------------------------------------------------------
 
 
@@ -286,8 +303,8 @@ def overlay_tile(estimator, frame, image: np.ndarray, result: TrackFrame) -> np.
 
 
 def run_track(args: argparse.Namespace) -> int:
+
     from monose3.api import load_estimator
-    from monose3.apps.arguments import check_track
 
     checked = getattr(args, "checked_inputs", None) or check_track(args)  # inputs checked before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device, parser=args.parser)
