@@ -7,7 +7,7 @@ from the ground truth perturbed by an inter-frame motion (default 2 cm and 3 deg
 about what a robot moves between frames at 30 Hz), not from a previous frame.
 
     python benchmarks/ablation.py --visdiff runs/visdiff/checkpoint.pt --fixper runs/fixper/checkpoint.pt \
-        --data data/test_reallike data/test_hard --json docs/ablation.json
+        --data data/test_reallike data/test_hard --json docs/results/ablation.json
 """
 
 from __future__ import annotations

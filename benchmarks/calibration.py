@@ -22,7 +22,7 @@ and range over the subsets) and the frames rejected (out of view / unreliable ch
 consensus), next to the median single-frame error of the same frames.
 
     python benchmarks/calibration.py --checkpoint CK [--frames 40] [--sizes 5 10 20 40] [--seed 0] \
-        [--chains 1] [--plot docs/calibration.png] [--keep DIR]
+        [--chains 1] [--plot docs/results/calibration.png] [--keep DIR]
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ under ``--max-false-alarm`` (a flag that fires on many good frames gets ignored)
 threshold maximising recall - false-alarm (Youden's J) is printed next to it.
 
     python benchmarks/uncertainty.py --checkpoint CK --data data/test_reallike data/test_hard \
-        [--limit 60] [--chains 4] [--prior 0.03 6] [--plot docs/uncertainty.png]
+        [--limit 60] [--chains 4] [--prior 0.03 6] [--plot docs/results/uncertainty.png]
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ FixPer with its rotation std rescaled so that its mean rotation angle matches Vi
 each t ("matched rotation spread"), and, for reference, FixPer's perturbation applied about the
 camera origin instead of the centroid (the paper's Fig. 2a).
 
-    python benchmarks/visdiff.py [--scenes 400] [--reps 10] [--plot docs/visdiff.png]
+    python benchmarks/visdiff.py [--scenes 400] [--reps 10] [--plot docs/results/visdiff.png]
 """
 
 from __future__ import annotations

@@ -1,0 +1,1 @@
+"""Domain-randomised synthetic scenes (``monose3 generate``): profiles, sampling, appearance, the writer."""

@@ -1,0 +1,23 @@
+"""The denoiser designs, one class each (``NetworkConfig.design``; docs/DESIGNS.md)."""
+
+from __future__ import annotations
+
+from monose3.method.config import DESIGNS, NetworkConfig
+from monose3.method.denoiser import Denoiser
+from monose3.method.designs.concat import Concat, ConcatGrid
+from monose3.method.designs.cost_volume import CostVolume, FlowSolve
+
+DESIGN_CLASSES: dict[str, type[Denoiser]] = {
+    "concat": Concat,
+    "concat-grid": ConcatGrid,
+    "cost-volume": CostVolume,
+    "flow-solve": FlowSolve,
+}
+FIELD_DESIGNS = tuple(name for name, cls in DESIGN_CLASSES.items() if cls.predicts_field)
+
+
+def build_denoiser(config: NetworkConfig) -> Denoiser:
+    """The denoiser ``config.design`` names (one of :data:`~monose3.method.config.DESIGNS`)."""
+    if config.design not in DESIGN_CLASSES:
+        raise ValueError(f"unknown denoiser design {config.design!r}; choose one of {DESIGNS}")
+    return DESIGN_CLASSES[config.design](config)

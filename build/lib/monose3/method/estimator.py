@@ -1,0 +1,350 @@
+"""Inference (Alg. 2): RoboPose's initialisation, K timestep-aware DDIM steps (RevDiff),
+M direct-regression steps, the DirectReg baseline and 1-step tracking. Batched over images
+and hypotheses: one render batch and one network call per step."""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from monose3.data.validation import check_batch
+from monose3.errors import Monose3Error
+from monose3.geometry.camera import project, standardize_image
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
+from monose3.method.config import Config
+from monose3.method.denoiser import Denoiser
+from monose3.method.flow_pose import render_surface
+from monose3.method.pose_space import base_frame, centroid_frame
+from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
+from monose3.method.scheduler import DDIMScheduler
+from monose3.method.update import apply_update, raw_to_update
+from monose3.perception.fitting import (
+    MIN_INSIDE,
+    RELIABLE_IOU,
+    Fit,
+    fit_pose,
+    inside_fraction,
+    pose_in_view,
+    track_pose,
+)
+from monose3.perception.parser import RobotParser
+from monose3.robot import RobotModel
+from monose3.robot.renderer import RobotRenderer
+
+# RoboPose's fixed initial orientation (camera-from-reference-point): the robot seen from the front.
+INIT_ROTATION = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)
+INIT_BOX_FRACTION = 3 / 5
+# Chains that disagree by more than this (mean keypoint distance to the chosen chain) are
+# flagged unreliable; see benchmarks/uncertainty.py for what the threshold catches.
+UNRELIABLE_MM = 30.0
+
+
+@dataclass
+class Estimate:
+    """Results for a batch of B images with H hypotheses each (poses are camera-from-base,
+    in the caller's original camera, metres)."""
+
+    poses: np.ndarray  # [B, 4, 4] the chosen estimate (medoid of the hypotheses)
+    hypotheses: np.ndarray  # [B, H, 4, 4]
+    in_view: np.ndarray  # [B] bool: the estimate keeps the robot's centroid in the image, in front
+    spread_mm: np.ndarray  # [B] mean keypoint distance of the hypotheses to the chosen one
+    spread_deg: np.ndarray  # [B] mean rotation angle of the hypotheses to the chosen one
+    history: list[np.ndarray] = field(default_factory=list)  # per step [B, H, 4, 4]
+    timings: dict[str, float] = field(default_factory=dict)
+    # The "fit" sampler's (perception.fitting) fit per image; None for the paper's samplers.
+    fit_iou: np.ndarray | None = None  # [B] silhouette IoU of the estimate with the parser's mask
+    keypoint_px: np.ndarray | None = None  # [B] keypoint reprojection error, parser-view pixels
+    found: np.ndarray | None = None  # [B] bool: the parser found the robot (else the pose is NaN)
+    reliable: np.ndarray | None = None  # [B] bool: the fit is good and the robot mostly in the image
+
+
+@dataclass
+class PreparedBatch:
+    """The inputs of :meth:`PoseEstimator.estimate` brought to the network's image size, one row per hypothesis."""
+
+    images: torch.Tensor  # [N, 3, H, W] standardized, one row per hypothesis
+    K: torch.Tensor  # [N, 3, 3] of the standardized image
+    size: torch.Tensor  # [N, 2]
+    joints: np.ndarray  # [N, n]
+    points_ref: torch.Tensor  # [N, P, 3]
+    centroid: torch.Tensor  # [N, 3]
+
+
+def check_steps(sampler: str, ddim_steps: int, direct_steps: int) -> None:
+    """One line for step counts the reverse process cannot run (before any work)."""
+    if sampler not in ("revdiff", "directreg"):
+        raise Monose3Error(f"unknown sampler {sampler!r}; choose fit, revdiff or directreg")
+    if min(ddim_steps, direct_steps) < 0:
+        raise Monose3Error(f"step counts cannot be negative (ddim_steps={ddim_steps}, direct_steps={direct_steps})")
+    if sampler == "revdiff" and ddim_steps < 1:
+        raise Monose3Error("revdiff needs ddim_steps >= 1; for direct steps only use sampler='directreg'")
+    if ddim_steps + direct_steps < 1:
+        raise Monose3Error("directreg needs at least one step (ddim_steps + direct_steps >= 1)")
+
+
+class PoseEstimator:
+    """A trained denoiser plus the batched renderer on the model's device, and optionally a
+    robot parser (the "fit" sampler, the default when there is one); call :meth:`estimate` or :meth:`track`."""
+
+    def __init__(self, model: Denoiser, config: Config, device: str = "cpu", parser: RobotParser | None = None):
+        self.model = model.to(device).eval()
+        self.parser = None if parser is None else parser.to(device).eval()
+        self.config = config
+        self.device = torch.device(device)
+        self.robot = RobotModel(config.robot)
+        self.scheduler = DDIMScheduler(config.diffusion)
+        self.renderer = RobotRenderer(self.robot, self.device)
+        self.timings: dict[str, float] = defaultdict(float)
+
+    @property
+    def default_sampler(self) -> str:
+        """ "fit" (parser + geometry) when the estimator has a parser, else the paper's "revdiff"."""
+        return "fit" if self.parser is not None else "revdiff"
+
+    def close(self) -> None:
+        """Free the renderer's cached mesh tensors (GPU memory when on CUDA)."""
+        self.renderer.release()
+
+    # ---- inputs ---------------------------------------------------------------------------
+
+    def prepare(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, hyps: int) -> PreparedBatch:
+        """Standardise the images (and their K) to ``network.input_size``; ``hyps`` rows per image."""
+        size = self.config.network.input_size
+        std_images, std_K = [], []
+        for img, K in zip(images, Ks, strict=True):
+            im, k = standardize_image(img, np.asarray(K, np.float64), size)
+            std_images.append(image_to_tensor(im))
+            std_K.append(k)
+        joints = np.asarray(joints, np.float64)
+        points = self.robot.surface_points(joints)
+        centroid = self.robot.centroid(points)
+        rep = lambda x: x.repeat_interleave(hyps, 0)  # noqa: E731
+        return PreparedBatch(
+            images=rep(torch.stack(std_images)).to(self.device),  # crops then run on the model's device
+            K=rep(torch.from_numpy(np.stack(std_K))),
+            size=torch.tensor([size], dtype=torch.float64).repeat(len(images) * hyps, 1),
+            joints=np.repeat(joints, hyps, axis=0),
+            points_ref=rep(torch.from_numpy(points - centroid[:, None])),
+            centroid=rep(torch.from_numpy(centroid)),
+        )
+
+    def initial_poses(self, batch: PreparedBatch) -> torch.Tensor:
+        """RoboPose's identity initialisation (camera-from-centroid): fixed rotation, the robot
+        fitted to a box over the central 3/5 of the image."""
+        n = len(batch.K)
+        rot = INIT_ROTATION.expand(n, 3, 3)
+        pts = batch.points_ref @ rot.transpose(1, 2)
+        extent = pts.amax(1) - pts.amin(1)
+        box = batch.size * INIT_BOX_FRACTION
+        f = torch.stack([batch.K[:, 0, 0], batch.K[:, 1, 1]], 1)
+        z = (f * extent[:, :2] / box).amax(1)
+        center = batch.size / 2 - 0.5
+        xy = (center - batch.K[:, :2, 2]) * z[:, None] / f
+        return make_pose(rot, torch.cat([xy, z[:, None]], 1))
+
+    # ---- one network evaluation -----------------------------------------------------------
+
+    @contextmanager
+    def timed(self, key: str) -> Iterator[None]:
+        """Add the seconds the block takes to ``self.timings[key]``."""
+        tick = time.perf_counter()
+        yield
+        self.timings[key] += time.perf_counter() - tick
+
+    @torch.no_grad()
+    def predict_x0(self, batch: PreparedBatch, pose_ref: torch.Tensor, t: int) -> torch.Tensor:
+        """The denoiser's H_0 prediction (Eq. 9) at ``pose_ref`` = H_t, camera-from-centroid ``[N, 4, 4]``."""
+        net = self.config.network
+        with self.timed("crop"):
+            boxes, K_crop = crop_geometry(pose_ref, batch.points_ref, batch.K, net.render_size)
+        with self.timed("render"):
+            pose_base = base_frame(pose_ref, batch.centroid).to(self.device)
+            rendered = self.renderer.render(batch.joints, pose_base, K_crop.to(self.device), net.render_size)
+        with self.timed("crop"):
+            crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
+        with self.timed("network"):
+            steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
+            surface = render_surface(rendered.depth, pose_ref.to(self.device).float(), K_crop.to(self.device).float())
+            raw = self.model(rendered.rgb, crops.to(self.device), steps, surface).raw.double().cpu()
+        with self.timed("update"):
+            v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
+            return apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)
+
+    # ---- public API -----------------------------------------------------------------------
+
+    def estimate(
+        self,
+        images: list[np.ndarray],
+        Ks: np.ndarray,
+        joints: np.ndarray,
+        sampler: str | None = None,
+        ddim_steps: int | None = None,
+        direct_steps: int | None = None,
+        hypotheses: int = 1,
+        stochastic: bool = False,
+        seed: int = 0,
+        init_poses: np.ndarray | None = None,
+        start_t: int | None = None,
+    ) -> Estimate:
+        """Estimate camera-from-base for each image. ``sampler``: 'fit' (the robot parser, PnP,
+        silhouette scoring and refinement: :mod:`monose3.perception.fitting`; ``init_poses``
+        join its hypotheses), 'revdiff' (K DDIM + M direct steps, the paper) or 'directreg'
+        (K + M direct steps, the baseline); default :attr:`default_sampler`. ``stochastic``
+        adds DDIM's noise term and perturbs the initial poses (several chains -> uncertainty).
+        ``init_poses`` ``[B, 4, 4]`` replace RoboPose's initialisation (tracking)."""
+        images, Ks, joints = check_batch(images, Ks, joints, self.robot)  # Monose3Error, not a crash in roi_align
+        sampler = sampler or self.default_sampler
+        if sampler == "fit":
+            return self.fit(images, Ks, joints, init_poses)
+        inf = self.config.inference
+        ddim_steps = inf.ddim_steps if ddim_steps is None else ddim_steps
+        direct_steps = inf.direct_steps if direct_steps is None else direct_steps
+        check_steps(sampler, ddim_steps, direct_steps)
+        self.timings = defaultdict(float)
+        start = time.perf_counter()
+        batch = self.prepare(images, Ks, joints, hypotheses)
+        gen = torch.Generator().manual_seed(seed) if stochastic else None
+        if init_poses is None:
+            pose = self.initial_poses(batch)
+        else:
+            # Standardising the image changes K only: a 3D pose means the same in both cameras.
+            init = np.repeat(np.asarray(init_poses, np.float64), hypotheses, 0)
+            pose = centroid_frame(torch.from_numpy(init), batch.centroid)
+        if stochastic:
+            pose = self._perturb(pose, gen, start_t)
+        history = [pose]
+        if sampler == "revdiff":  # Alg. 2: K timestep-aware DDIM steps (Eq. 8) over the scheduler
+            steps = self.scheduler.timesteps(ddim_steps, start_t)
+            for t, t_prev in zip(steps, [*steps[1:], 0], strict=True):
+                x0 = self.predict_x0(batch, pose, t)
+                with self.timed("update"):
+                    pose = self.scheduler.step(x0, t, t_prev, pose, batch.K, batch.size, inf.eta, gen)
+                history.append(pose)
+        else:  # directreg (check_steps refused anything else)
+            direct_steps += ddim_steps
+        for _ in range(direct_steps):
+            pose = self.predict_x0(batch, pose, 1)
+            history.append(pose)
+        result = self.finish(batch, history, len(images), hypotheses)
+        result.timings["total"] = time.perf_counter() - start
+        return result
+
+    def fit(
+        self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, priors: np.ndarray | None = None,
+        track: bool = False,
+    ) -> Estimate:  # fmt: skip
+        """The "fit" sampler, image by image (``priors`` ``[B, 4, 4]`` join the hypotheses; with
+        ``track`` they are only refined, from a view around them: tracking)."""
+        if self.parser is None:
+            raise Monose3Error(
+                f"no robot parser for {self.robot.name}: the 'fit' sampler needs one (--parser FILE); "
+                "or use --sampler revdiff"
+            )
+        start = time.perf_counter()
+        fits = []
+        for i, (image, K, q) in enumerate(zip(images, Ks, joints, strict=True)):
+            prior = None if priors is None else np.asarray(priors[i], np.float64)
+            if track:
+                fits.append(track_pose(self.parser, self.renderer, self.robot, image, K, q, prior))
+            else:
+                extra = None if prior is None else prior[None]
+                fits.append(fit_pose(self.parser, self.renderer, self.robot, image, K, q, extra))
+        return self._fit_estimate(fits, images, Ks, joints, time.perf_counter() - start)
+
+    def _fit_estimate(self, fits: list[Fit], images, Ks, joints, seconds: float) -> Estimate:
+        poses = np.stack([f.pose for f in fits])
+        hyps = max(1, max(len(f.candidates) for f in fits))
+        candidates = np.full((len(fits), hyps, 4, 4), np.nan)
+        for i, f in enumerate(fits):
+            candidates[i, : len(f.candidates)] = f.candidates
+        found = np.array([f.found for f in fits])
+        views = list(zip(poses, joints, Ks, [img.shape for img in images], strict=True))
+        in_view = found & np.array([pose_in_view(self.robot, *v) for v in views])
+        inside = np.array([inside_fraction(self.robot, *v) for v in views])
+        iou = np.array([f.iou for f in fits])
+        return Estimate(
+            poses=poses,
+            hypotheses=candidates,
+            in_view=in_view,
+            spread_mm=np.zeros(len(fits)),
+            spread_deg=np.zeros(len(fits)),
+            history=[candidates],
+            timings={"total": seconds},
+            fit_iou=iou,
+            keypoint_px=np.array([f.keypoint_error for f in fits]),
+            found=found,
+            reliable=in_view & (iou >= RELIABLE_IOU) & (inside >= MIN_INSIDE),
+        )
+
+    def track(
+        self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, previous: np.ndarray,
+        sampler: str | None = None,
+    ) -> Estimate:  # fmt: skip
+        """Tracking: from the previous estimates, the paper's one step at a small t
+        (``sampler`` 'revdiff'), or a few refinement iterations on a parser view around them ('fit')."""
+        if (sampler or self.default_sampler) == "fit":
+            images, Ks, joints = check_batch(images, Ks, joints, self.robot)
+            return self.fit(images, Ks, joints, np.asarray(previous, np.float64), track=True)
+        return self.estimate(
+            images,
+            Ks,
+            joints,
+            sampler="revdiff",
+            ddim_steps=1,
+            direct_steps=0,
+            init_poses=previous,
+            start_t=self.config.inference.tracking_t,
+        )
+
+    # ---- helpers --------------------------------------------------------------------------
+
+    def _perturb(self, pose: torch.Tensor, gen: torch.Generator, start_t: int | None) -> torch.Tensor:
+        """Spread the chains' starts: 0.15 rad per axis and 5 % of the translation from t = T,
+        shrunk like the forward process's noise std sqrt(1 - alpha_bar_t) when the chains start
+        lower (refining a prior), so a good prior is not thrown further than the noise at t."""
+        ab = self.scheduler.alpha_bar
+        t = self.scheduler.num_steps if start_t is None else start_t
+        scale = float(torch.sqrt((1 - ab[t]) / (1 - ab[-1])))
+        n = len(pose)
+        rot = euler_xyz_to_matrix(torch.randn(n, 3, generator=gen, dtype=pose.dtype) * 0.15 * scale)
+        out = pose.clone()
+        out[:, :3, :3] = rot @ pose[:, :3, :3]
+        out[:, :3, 3] = pose[:, :3, 3] * (1 + 0.05 * scale * torch.randn(n, 3, generator=gen, dtype=pose.dtype))
+        return out
+
+    def finish(self, batch: PreparedBatch, history: list[torch.Tensor], n_images: int, hyps: int) -> Estimate:
+        """The :class:`Estimate` of the poses ``history`` (camera-from-centroid, per step): each
+        image's medoid hypothesis, the spread of its hypotheses and whether it is in view."""
+        to_base = [base_frame(p, batch.centroid).numpy().reshape(n_images, hyps, 4, 4) for p in history]
+        final = to_base[-1]
+        kps = self.robot.keypoints(batch.joints[::hyps])  # [B, K, 3]
+        chosen, spread_mm, spread_deg = [], [], []
+        for b in range(n_images):
+            cam = np.einsum("hij,kj->hki", final[b, :, :3, :3], kps[b]) + final[b, :, None, :3, 3]
+            dist = np.linalg.norm(cam[:, None] - cam[None], axis=-1).mean(-1)  # [H, H]
+            m = int(np.argmin(dist.sum(1)))
+            chosen.append(final[b, m])
+            spread_mm.append(1000 * dist[m].sum() / max(1, hyps - 1))
+            ang = np.degrees(rotation_angle(final[b, :, :3, :3], final[b, m, :3, :3]))
+            spread_deg.append(ang.sum() / max(1, hyps - 1))
+        poses = np.stack(chosen)
+        ref = centroid_frame(torch.from_numpy(poses), batch.centroid[::hyps])
+        uv = project(ref[:, None, :3, 3], batch.K[::hyps])[:, 0]
+        size = batch.size[::hyps]
+        in_view = (ref[:, 2, 3] > 0) & (uv >= -0.5).all(1) & (uv <= size - 0.5).all(1)
+        return Estimate(
+            poses=poses,
+            hypotheses=final,
+            in_view=in_view.numpy(),
+            spread_mm=np.asarray(spread_mm),
+            spread_deg=np.asarray(spread_deg),
+            history=to_base,
+            timings=dict(self.timings),
+        )

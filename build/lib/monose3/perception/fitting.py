@@ -1,0 +1,331 @@
+"""The pose from the parser's evidence: PnP hypotheses, silhouette scoring, silhouette refinement.
+
+Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are known:
+
+1. **Views.** The parser sees the whole image (padded to 4:3), then a zoomed view around the
+   mask it found, so a small robot is parsed at a useful resolution.
+2. **Hypotheses.** PnP (OpenCV's SQPnP in RANSAC, and on leave-one-out subsets) from the
+   keypoints, any poses the caller brings (a prior), and orientations over the sphere placed
+   where the mask is and as large as it is (the fallback when PnP fails).
+3. **Scoring.** Each hypothesis is rendered (one batch) and scored by its silhouette's IoU with
+   the mask, less its keypoint reprojection error.
+4. **Refinement.** The best few are refined by damped Gauss-Newton on the keypoints' reprojection
+   and on a symmetric chamfer between the rendered outline and the mask's (each outline pixel
+   of the render, back-projected through its depth, is pulled to the nearest outline pixel of
+   the mask, and each outline pixel of the mask pulls the nearest one of the render;
+   re-rendered each iteration, so it is ICP on silhouettes). We chose this over a
+   differentiable renderer or a derivative-free search: our rasteriser is exact but not
+   differentiable, and correspondences make each iteration one render and a 6x6 solve, where a
+   derivative-free search needs dozens of renders per step for the same precision.
+
+The reported pose is the refined hypothesis with the best final fit; the fit (IoU, keypoint
+residual) is the confidence.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from monose3.geometry.camera import project
+from monose3.geometry.poses import make_pose
+from monose3.geometry.rotations import rotation_angle
+from monose3.method.flow_pose import solve_pose
+from monose3.perception.parser import RobotParser
+from monose3.perception.silhouette import OUTLINE_SCALE, Outline, outline_terms, silhouette_ious
+from monose3.perception.views import (
+    MASK_THRESHOLD,
+    MIN_MASK_FRACTION,
+    ViewEvidence,
+    box_around,
+    full_box,
+    image_tensor,
+    parse_view,
+    resized_view,
+    zoom_box,
+)
+from monose3.robot import RobotModel
+from monose3.robot.renderer import RobotRenderer
+
+MIN_KEYPOINT_CONFIDENCE = 0.2
+PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view's width
+SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
+KEEP_HYPOTHESES = 4  # refined per image
+COARSE_ITERATIONS = 12  # refinement at SCORE_SIZE
+REFINE_ITERATIONS = 6  # then at the view's resolution
+TRACK_ITERATIONS = (4, 2)  # coarse, fine: between frames the robot moves little
+KEYPOINT_PENALTY = 2.0  # score = IoU - this * (keypoint error / view width)
+KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
+KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
+CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
+SPHERE_AZIMUTHS, SPHERE_ELEVATIONS = 8, (10.0, 45.0)  # a fallback: PnP from the keypoints wins when it works
+# The fit flags an estimate unreliable below this IoU (benchmarks/accuracy.py measures what it
+# catches), or when less than MIN_INSIDE of the robot lies in the image (too little to fit to).
+RELIABLE_IOU = 0.9
+MIN_INSIDE = 0.5
+
+
+@dataclass
+class Fit:
+    """One image's result: the pose (camera-from-base), its fit and the view it was fitted in."""
+
+    pose: np.ndarray
+    iou: float
+    keypoint_error: float  # mean reprojection error of confident keypoints, view pixels
+    score: float
+    view: ViewEvidence
+    candidates: np.ndarray  # [H, 4, 4] the refined hypotheses, best first
+    found: bool = True
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
+
+
+def pnp_hypotheses(view: ViewEvidence, keypoints_base: np.ndarray) -> list[np.ndarray]:
+    """Camera-from-base poses from the confident keypoints: RANSAC + SQPnP, refined by LM on
+    its inliers, and SQPnP on all confident keypoints."""
+    good = view.confidence >= MIN_KEYPOINT_CONFIDENCE
+    if good.sum() < 4:
+        return []
+    obj, img = keypoints_base[good].astype(np.float64), view.keypoints[good].astype(np.float64)
+    poses = []
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        obj, img, view.K, None, reprojectionError=PNP_ERROR_FRACTION * view.size[0], flags=cv2.SOLVEPNP_SQPNP
+    )
+    if ok and inliers is not None and len(inliers) >= 4:
+        idx = inliers[:, 0]
+        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], view.K, None, rvec, tvec)
+        poses.append(_pose(rvec, tvec))
+    subsets = [np.ones(len(obj), bool)]
+    if len(obj) > 4:  # each keypoint left out in turn: one wrong keypoint then spoils one subset only
+        subsets += [np.arange(len(obj)) != i for i in range(len(obj))]
+    for keep in subsets:
+        ok, rvec, tvec = cv2.solvePnP(obj[keep], img[keep], view.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if ok:
+            poses.append(_pose(rvec, tvec))
+    return [p for p in poses if np.isfinite(p).all() and p[2, 3] > 0.05]
+
+
+def _pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    return make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+
+
+def sphere_hypotheses(view: ViewEvidence, surface_base: np.ndarray) -> list[np.ndarray]:
+    """Orientations over the sphere (the camera looking at the robot from azimuths x elevations),
+    each placed so the robot's centroid projects to the mask's centroid at the depth where its
+    projected extent matches the mask's."""
+    ys, xs = np.nonzero((view.mask > MASK_THRESHOLD).numpy())
+    if not len(xs):
+        return []
+    centre = np.array([xs.mean(), ys.mean()])
+    extent = max(xs.max() - xs.min(), ys.max() - ys.min()) + 1
+    centroid = surface_base.mean(0)
+    f = (view.K[0, 0] + view.K[1, 1]) / 2
+    ray = np.array([(centre[0] - view.K[0, 2]) / view.K[0, 0], (centre[1] - view.K[1, 2]) / view.K[1, 1], 1.0])
+    poses = []
+    for elevation in SPHERE_ELEVATIONS:
+        for i in range(SPHERE_AZIMUTHS):
+            az, el = 2 * math.pi * i / SPHERE_AZIMUTHS, math.radians(elevation)
+            eye = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+            rot = _look_at(eye)
+            pts = (surface_base - centroid) @ rot.T
+            size = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1]))
+            depth = f * size / extent
+            poses.append(make_pose(rot, ray * depth - rot @ centroid))
+    return poses
+
+
+def _look_at(eye: np.ndarray) -> np.ndarray:
+    """Camera-from-world rotation (OpenCV axes) of a camera at ``eye`` looking at the origin, z up."""
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    return np.stack([x, np.cross(z, x), z])
+
+
+def keypoint_distances(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
+    """``[H, K]`` pixel distance of each keypoint, as each pose projects it, to where the parser saw it."""
+    cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base) + poses[:, None, :3, 3]
+    return np.linalg.norm(project(cam, view.K) - view.keypoints, axis=-1)
+
+
+def keypoint_errors(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
+    """Confidence-weighted mean reprojection error ``[H]`` (view pixels) of the keypoints at
+    each pose, each error capped at :data:`KEYPOINT_ERROR_CAP` of the view's width (a keypoint
+    the parser got wrong costs a bounded amount)."""
+    err = np.minimum(keypoint_distances(poses, keypoints_base, view), KEYPOINT_ERROR_CAP * view.size[0])
+    return (err * view.confidence).sum(-1) / max(view.confidence.sum(), 1e-6)
+
+
+def fit_scores(ious: np.ndarray, kp_errors: np.ndarray, view: ViewEvidence) -> np.ndarray:
+    return ious - KEYPOINT_PENALTY * np.minimum(kp_errors / view.size[0], 1.0)
+
+
+def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                 keypoints_base: np.ndarray, iterations: int = REFINE_ITERATIONS) -> np.ndarray:  # fmt: skip
+    """Silhouette + keypoint refinement of ``poses`` ``[H, 4, 4]`` (see the module's step 4)."""
+    target = Outline((view.mask > MASK_THRESHOLD).numpy())
+    rng = np.random.default_rng(0)
+    n = len(poses)
+    K = torch.from_numpy(view.K)[None].expand(n, 3, 3)
+    for _ in range(iterations):
+        kp_dist = keypoint_distances(poses, keypoints_base, view)
+        kp_weights = view.confidence / (1 + (kp_dist / (KEYPOINT_SCALE * view.size[0])) ** 2)
+        rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, view.size)
+        masks, depths = rendered.mask.cpu().numpy(), rendered.depth.cpu().numpy()
+        points, goals, weights = [], [], []
+        for mask, depth, pose, kp_w in zip(masks, depths, poses, kp_weights, strict=True):
+            pts, goal, w = outline_terms(target, mask, depth, pose, view.K, OUTLINE_SCALE * view.size[0], rng)
+            points.append(np.concatenate([keypoints_base, pts]))
+            goals.append(np.concatenate([view.keypoints, goal]))
+            weights.append(np.concatenate([kp_w, w]))
+        new = solve_pose(torch.from_numpy(poses), K, _stack_padded(points), _stack_padded(goals),
+                         _stack_padded(weights), iterations=2).numpy()  # fmt: skip
+        moved_mm = 1000 * np.linalg.norm(new[:, :3, 3] - poses[:, :3, 3], axis=-1).max()
+        moved_deg = np.degrees(rotation_angle(new[:, :3, :3], poses[:, :3, :3])).max()
+        poses = new
+        if moved_mm < CONVERGED_MM and moved_deg < CONVERGED_DEG:
+            break
+    return poses
+
+
+def refine_coarse_to_fine(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                          keypoints_base: np.ndarray, coarse: int = COARSE_ITERATIONS,
+                          fine: int = REFINE_ITERATIONS) -> np.ndarray:  # fmt: skip
+    """:func:`refine_poses` at :data:`SCORE_SIZE` first (``coarse`` iterations: renders 4x
+    cheaper, and ICP on silhouettes needs many small steps from afar), then ``fine`` at the view's resolution."""
+    poses = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, coarse)
+    return refine_poses(renderer, joints, poses, view, keypoints_base, fine)
+
+
+def inside_fraction(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> float:
+    """The share of the robot's surface points that ``pose`` puts in front of the camera and inside the image."""
+    if not np.isfinite(pose).all():
+        return 0.0
+    cam = robot.surface_points(joints[None])[0] @ pose[:3, :3].T + pose[:3, 3]
+    u, v = project(cam, K).T
+    h, w = image_shape[:2]
+    return float(np.mean((cam[:, 2] > 0) & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)))
+
+
+def pose_in_view(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> bool:
+    """Whether ``pose`` puts the robot's centroid in front of the camera and inside the image."""
+    if not np.isfinite(pose).all():
+        return False
+    centroid = robot.centroid(robot.surface_points(joints[None]))[0]
+    cam = pose[:3, :3] @ centroid + pose[:3, 3]
+    if cam[2] <= 0:
+        return False
+    u, v = project(cam[None], K)[0]
+    h, w = image_shape[:2]
+    return bool(-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5)
+
+
+def _stack_padded(arrays: list[np.ndarray]) -> torch.Tensor:
+    """Rows of different lengths stacked, zero-padded (zero weight: padding does not count)."""
+    n = max(len(a) for a in arrays)
+    return torch.from_numpy(np.stack([np.pad(a, [(0, n - len(a))] + [(0, 0)] * (a.ndim - 1)) for a in arrays]))
+
+
+def fit_pose(
+    parser: RobotParser,
+    renderer: RobotRenderer,
+    robot: RobotModel,
+    image: np.ndarray,
+    K: np.ndarray,
+    joints: np.ndarray,
+    extra_poses: np.ndarray | None = None,
+    sphere: bool = True,
+    refine: bool = True,
+) -> Fit:
+    """The module's stages on one image (``[H, W, 3]`` uint8 RGB, its K, the joints).
+    ``sphere`` / ``refine`` off leave out the sphere's hypotheses / the refinement (ablations)."""
+    clock = _Clock()
+    size = parser.config.input_size
+    aspect = size[0] / size[1]
+    tensor = image_tensor(image)
+    view = parse_view(parser, tensor, K, full_box((image.shape[1], image.shape[0]), aspect))
+    if view.robot_fraction < MIN_MASK_FRACTION:
+        return not_found(view)
+    box = zoom_box(view, aspect)
+    if box is not None:
+        zoomed = parse_view(parser, tensor, K, box)
+        view = zoomed if zoomed.robot_fraction >= MIN_MASK_FRACTION else view
+    clock.lap("parse")
+    kp_base = robot.keypoints(joints[None])[0]
+    hyps = pnp_hypotheses(view, kp_base)
+    if extra_poses is not None:
+        hyps += list(extra_poses)
+    if sphere or not hyps:
+        hyps += sphere_hypotheses(view, robot.surface_points(joints[None])[0])
+    if not hyps:
+        return not_found(view)
+    poses = np.stack(hyps)
+    ious = silhouette_ious(renderer, joints, poses, view, SCORE_SIZE)
+    scores = fit_scores(ious, keypoint_errors(poses, kp_base, view), view)
+    poses = poses[np.argsort(-scores)[:KEEP_HYPOTHESES]]
+    clock.lap("search")
+    if refine:
+        poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base)
+        clock.lap("refine")
+    fit = best_fit(renderer, joints, poses, view, kp_base)
+    clock.lap("score")
+    fit.timings = clock.laps
+    return fit
+
+
+def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+             kp_base: np.ndarray) -> Fit:  # fmt: skip
+    """The best of ``poses`` by their fit in ``view`` (silhouette at full view size, keypoints)."""
+    ious = silhouette_ious(renderer, joints, poses, view, view.size)
+    errors = keypoint_errors(poses, kp_base, view)
+    scores = fit_scores(ious, errors, view)
+    order = np.argsort(-scores)
+    best = order[0]
+    return Fit(poses[best], float(ious[best]), float(errors[best]), float(scores[best]), view, poses[order])
+
+
+class _Clock:
+    def __init__(self):
+        self.laps: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = now - self._last
+        self._last = now
+
+
+def not_found(view: ViewEvidence) -> Fit:
+    return Fit(np.full((4, 4), np.nan), 0.0, math.inf, -math.inf, view, np.zeros((0, 4, 4)), found=False)
+
+
+def track_pose(
+    parser: RobotParser,
+    renderer: RobotRenderer,
+    robot: RobotModel,
+    image: np.ndarray,
+    K: np.ndarray,
+    joints: np.ndarray,
+    previous: np.ndarray,
+    iterations: tuple[int, int] = TRACK_ITERATIONS,
+) -> Fit:
+    """Tracking: the refinement's (coarse, fine) ``iterations`` from the previous pose, in one
+    parser view around where that pose puts the robot's surface."""
+    size = parser.config.input_size
+    aspect = size[0] / size[1]
+    whole = full_box((image.shape[1], image.shape[0]), aspect)
+    surface = robot.surface_points(joints[None])[0]
+    uv = project(surface @ previous[:3, :3].T + previous[:3, 3], K)
+    box = box_around(uv.min(0), uv.max(0), aspect) if np.isfinite(uv).all() else whole
+    if box[2] - box[0] > whole[2] - whole[0]:
+        box = whole
+    view = parse_view(parser, image_tensor(image), K, box)
+    if view.robot_fraction < MIN_MASK_FRACTION:
+        return not_found(view)
+    kp_base = robot.keypoints(joints[None])[0]
+    poses = refine_coarse_to_fine(renderer, joints, previous[None], view, kp_base, *iterations)
+    return best_fit(renderer, joints, poses, view, kp_base)

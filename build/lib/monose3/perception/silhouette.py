@@ -1,0 +1,87 @@
+"""Silhouettes: the IoU of rendered poses with the parser's mask, and the outline
+correspondences (a symmetric chamfer) the refinement pulls the render along."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from monose3.geometry.camera import scale_K
+from monose3.perception.views import MASK_THRESHOLD, ViewEvidence
+from monose3.robot.renderer import RobotRenderer
+
+OUTLINE_POINTS = 300  # render outline pixels used per iteration
+# The silhouette terms' total weights in the solve (each keypoint weighs its confidence, <= 1):
+# the silhouette decides, the keypoints break its ties (benchmarks/accuracy.py; 3.5 each: held-out
+# AUC 82 / 44 on 30 reallike / hard frames, 25 each: 88 / 48).
+RENDER_TO_MASK = 25.0
+MASK_TO_RENDER = 25.0
+OUTLINE_SCALE = 0.015  # Cauchy scale of outline residuals, fraction of the view's width
+
+
+def silhouette_ious(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                    size: tuple[int, int]) -> np.ndarray:  # fmt: skip
+    """IoU ``[H]`` of each pose's rendered silhouette with the view's mask, compared at ``size``."""
+    K = scale_K(view.K, view.size, size)
+    n = len(poses)
+    K = torch.from_numpy(K)[None].expand(n, 3, 3)
+    rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, size)
+    mask = F.interpolate(view.mask[None, None], size=(size[1], size[0]), mode="bilinear", align_corners=False)[0, 0]
+    mask = (mask > MASK_THRESHOLD).to(rendered.mask.device)
+    inter = (rendered.mask & mask).flatten(1).sum(1).float()
+    union = (rendered.mask | mask).flatten(1).sum(1).float().clamp_min(1)
+    return (inter / union).cpu().numpy()
+
+
+class Outline:
+    """The outline pixels of a binary mask ``[h, w]`` and, for every pixel, the nearest of them."""
+
+    def __init__(self, mask: np.ndarray):
+        mask = mask.astype(np.uint8)
+        outline = mask - cv2.erode(mask, np.ones((3, 3), np.uint8))
+        ys, xs = np.nonzero(outline)  # raster order, as distanceTransformWithLabels numbers them
+        self.pixels = np.stack([xs, ys], -1).astype(np.float64)
+        if len(xs):
+            _, labels = cv2.distanceTransformWithLabels(1 - outline, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+            self._nearest = labels - 1
+
+    def __len__(self) -> int:
+        return len(self.pixels)
+
+    def nearest(self, uv: np.ndarray) -> np.ndarray:
+        """Index ``[N]`` of the outline pixel nearest to each of ``uv`` ``[N, 2]``."""
+        u = np.clip(np.round(uv[:, 0]).astype(int), 0, self._nearest.shape[1] - 1)
+        v = np.clip(np.round(uv[:, 1]).astype(int), 0, self._nearest.shape[0] - 1)
+        return self._nearest[v, u]
+
+
+def _subsample(n: int, rng: np.random.Generator) -> np.ndarray:
+    return rng.choice(n, OUTLINE_POINTS, replace=False) if n > OUTLINE_POINTS else np.arange(n)
+
+
+def outline_terms(target: Outline, render_mask: np.ndarray, depth: np.ndarray, pose: np.ndarray, K: np.ndarray,
+                  scale: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The silhouette's residual terms for one pose: (surface points in the base frame ``[N, 3]``,
+    the pixels they should project to ``[N, 2]``, weights ``[N]``), a symmetric chamfer between
+    the render's outline and the mask's. Each render outline pixel is pulled to the nearest mask
+    outline pixel (weight :data:`RENDER_TO_MASK`: an occluder cuts the mask, not the render, so
+    this direction is the less trustworthy one), and each mask outline pixel pulls the nearest
+    render outline pixel (:data:`MASK_TO_RENDER`). Cauchy weights of scale ``scale`` pixels."""
+    rendered = Outline(render_mask)
+    if not len(rendered) or not len(target):
+        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
+    xs, ys = rendered.pixels[:, 0].astype(int), rendered.pixels[:, 1].astype(int)
+    z = depth[ys, xs].astype(np.float64)
+    cam = np.stack([(xs - K[0, 2]) / K[0, 0] * z, (ys - K[1, 2]) / K[1, 1] * z, z], -1)
+    base = (cam - pose[:3, 3]) @ pose[:3, :3]  # R^T (X - t): every render outline pixel's surface point
+    fwd = _subsample(len(rendered), rng)
+    fwd_goal = target.pixels[target.nearest(rendered.pixels[fwd])]
+    rev_goal = target.pixels[_subsample(len(target), rng)]
+    rev = rendered.nearest(rev_goal)
+    points = np.concatenate([base[fwd], base[rev]])
+    goals = np.concatenate([fwd_goal, rev_goal])
+    dist = np.linalg.norm(goals - np.concatenate([rendered.pixels[fwd], rendered.pixels[rev]]), axis=-1)
+    share = np.concatenate([np.full(len(fwd), RENDER_TO_MASK / len(fwd)), np.full(len(rev), MASK_TO_RENDER / len(rev))])
+    return points, goals, share / (1 + (dist / scale) ** 2)

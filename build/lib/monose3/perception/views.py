@@ -1,0 +1,94 @@
+"""The parser's views of an image: the whole image padded to the parser's aspect, then a
+zoomed box around the robot the first view found, each resized to the parser's input."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torchvision.ops import roi_align
+
+from monose3.geometry.camera import crop_intrinsics, scale_K
+from monose3.perception.parser import RobotParser, decode_keypoints
+
+MASK_THRESHOLD = 0.5
+MIN_MASK_FRACTION = 2e-4  # of the view's pixels: fewer robot pixels than this is "no robot"
+ZOOM_MARGIN = 1.3  # the zoomed view spans the mask's box grown by this factor
+ZOOM_MAX_FRACTION = 0.7  # zoom only when the mask's box is smaller than this fraction of the view
+
+
+@dataclass
+class ViewEvidence:
+    """What the parser sees in one view (a box of the image resized to the parser's input)."""
+
+    mask: torch.Tensor  # [h, w] robot probability at the view's resolution
+    keypoints: np.ndarray  # [K, 2] view pixels
+    confidence: np.ndarray  # [K]
+    K: np.ndarray  # [3, 3] the view's intrinsics
+    box: np.ndarray  # [4] x1, y1, x2, y2 in the image (edge coordinates)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.mask.shape[1]), int(self.mask.shape[0])
+
+    @property
+    def robot_fraction(self) -> float:
+        return float((self.mask > MASK_THRESHOLD).float().mean())
+
+
+def image_tensor(image: np.ndarray) -> torch.Tensor:
+    """``[H, W, 3]`` uint8 to ``[1, 3, H, W]`` float in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float().div_(255.0)
+
+
+@torch.no_grad()
+def parse_view(parser: RobotParser, image: torch.Tensor, K: np.ndarray, box: np.ndarray) -> ViewEvidence:
+    """Run the parser on ``box`` (edge coordinates; beyond the image is black, as padding) of
+    ``image`` ``[1, 3, H, W]``, resized to the parser's input with anti-aliasing."""
+    size = parser.config.input_size
+    device = next(parser.parameters()).device
+    rois = torch.tensor([[0.0, *box]], dtype=torch.float32)
+    view = roi_align(image, rois, (size[1], size[0]), 1.0, sampling_ratio=0, aligned=True)
+    mask_logits, kp_logits = parser(view.to(device))
+    mask = F.interpolate(mask_logits, size=(size[1], size[0]), mode="bilinear", align_corners=False)
+    uv, conf = decode_keypoints(kp_logits.float())
+    K_view = crop_intrinsics(torch.from_numpy(K)[None], torch.from_numpy(box)[None].double(), size)[0].numpy()
+    return ViewEvidence(mask[0, 0].float().sigmoid().cpu(), uv[0].cpu().double().numpy(), conf[0].cpu().numpy(),
+                        K_view, np.asarray(box, np.float64))  # fmt: skip
+
+
+def full_box(image_size: tuple[int, int], aspect: float) -> np.ndarray:
+    """The whole image padded (right/bottom) to ``aspect`` (w/h), as the estimator standardises it."""
+    w, h = image_size
+    return np.array([0.0, 0.0, max(w, h * aspect), max(h, w / aspect)])
+
+
+def zoom_box(view: ViewEvidence, aspect: float) -> np.ndarray | None:
+    """The image box around the robot that ``view``'s mask shows, or None when the robot
+    already fills the view."""
+    ys, xs = np.nonzero((view.mask > MASK_THRESHOLD).numpy())
+    w, h = view.size
+    if (xs.max() + 1 - xs.min()) * ZOOM_MARGIN > ZOOM_MAX_FRACTION * w:
+        return None
+    scale = (view.box[2:] - view.box[:2]) / np.array([w, h])
+    lo = view.box[:2] + np.array([xs.min(), ys.min()]) * scale
+    hi = view.box[:2] + np.array([xs.max() + 1, ys.max() + 1]) * scale
+    return box_around(lo, hi, aspect)
+
+
+def box_around(lo: np.ndarray, hi: np.ndarray, aspect: float) -> np.ndarray:
+    """The box (edge coordinates) centred on the box ``lo``-``hi``, grown by :data:`ZOOM_MARGIN` and to ``aspect``."""
+    half = (hi - lo) / 2 * ZOOM_MARGIN
+    half = np.maximum(half, [half[1] * aspect, half[0] / aspect])
+    centre = (lo + hi) / 2
+    return np.concatenate([centre - half, centre + half])
+
+
+def resized_view(view: ViewEvidence, size: tuple[int, int]) -> ViewEvidence:
+    """``view`` at another resolution (the refinement's coarse pass): mask, keypoints and K scaled."""
+    mask = F.interpolate(view.mask[None, None], size=(size[1], size[0]), mode="bilinear", align_corners=False)
+    scale = np.array(size, float) / np.array(view.size, float)
+    keypoints = (view.keypoints + 0.5) * scale - 0.5
+    return ViewEvidence(mask[0, 0], keypoints, view.confidence, scale_K(view.K, view.size, size), view.box)
