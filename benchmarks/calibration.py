@@ -12,7 +12,7 @@ camera for the whole set:
 * pixels: one light and one domain-randomised background with its distractor shapes, drawn
   once (the scene does not change when the camera does not move); per frame only what a real
   static camera still sees change: occluders, colour jitter, blur, sensor noise and the JPEG
-  quality (``generate.compose_frame`` with the ``reallike`` settings);
+  quality (``appearance.compose_frame`` with the ``reallike`` settings);
 * written with ``dream.write_frame`` (ground truth = forward kinematics under the camera pose).
 
 The set is split into disjoint subsets of N frames for every N in ``--sizes`` and
@@ -43,7 +43,7 @@ from monose3.api import load_estimator
 from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_POOR_FIT, REASON_UNRELIABLE, calibrate
 from monose3.data.datasets import open_dataset
 from monose3.data.dream_writer import write_camera_settings, write_frame
-from monose3.data.scenes.appearance import BackgroundSource, compose_frame, draw_shapes
+from monose3.data.scenes.appearance import compose_frame, scene_background
 from monose3.data.scenes.profiles import PROFILES
 from monose3.data.scenes.sampling import frame_rng, sample_scene
 from monose3.errors import Monose3Error, run_reporting_errors
@@ -62,17 +62,6 @@ REASONS = (REASON_OUT_OF_VIEW, REASON_UNRELIABLE, REASON_POOR_FIT, REASON_CONSEN
 
 
 # ---- the static-camera set ------------------------------------------------------------------
-
-
-class FixedBackground(BackgroundSource):
-    """The one background of a static scene (a copy each time: compositing draws into it)."""
-
-    def __init__(self, image: np.ndarray):
-        super().__init__()
-        self.image = image
-
-    def sample(self, rng, size, palette=None, user_prob=0.0) -> np.ndarray:  # noqa: ARG002 - same scene every frame
-        return self.image.copy()
 
 
 def visible_fraction(model: RobotModel, joints: np.ndarray, pose: np.ndarray, K: np.ndarray) -> float:
@@ -116,15 +105,14 @@ def make_static_set(out: Path, frames: int, seed: int) -> dict:
             break
     else:
         raise Monose3Error(f"no camera of profile reallike kept the robot in view for {frames} configurations")
-    background = BackgroundSource().sample(rng, IMAGE_SIZE)
-    draw_shapes(rng, background, int(rng.integers(profile.distractors[0], profile.distractors[1] + 1)), None, 0.5)
-    backgrounds = FixedBackground(background)
+    background = scene_background(torch.Generator().manual_seed(int(rng.integers(2**62))), 1, IMAGE_SIZE, profile,
+                                  None, "cpu")  # fmt: skip
     renders = RobotRenderer(model).render_jobs(
         [RenderJob(q, scene.pose, scene.K, IMAGE_SIZE, scene.lighting) for q in joints]
     )
     for i, (q, (rgb, mask)) in enumerate(zip(joints, renders, strict=True)):
         frng = frame_rng(seed, i + 1)
-        img, info = compose_frame(frng, rgb, mask, per_frame, backgrounds)
+        img, _ = compose_frame(frng, rgb, mask, per_frame, None, background)
         quality = int(frng.integers(profile.jpeg_quality[0], profile.jpeg_quality[1] + 1))
         write_frame(out, i, img, scene.K, model.joint_dict(q), scene.pose, robot=model, quality=quality)
     write_camera_settings(out, scene.K, *IMAGE_SIZE)

@@ -9,10 +9,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from monose3.apps import cli
 from monose3.data.dream import DreamDataset
-from monose3.data.scenes.appearance import BackgroundSource
+from monose3.data.scenes.appearance import backgrounds, load_photos
 from monose3.data.scenes.profiles import PROFILES
 from monose3.data.scenes.sampling import frame_rng, sample_scene
 from monose3.data.scenes.writer import generate_dataset, save_preview_grid
@@ -131,12 +132,13 @@ def test_backgrounds_from_user_folder(tmp_path: Path) -> None:
     folder = tmp_path / "bg"
     folder.mkdir()
     cv2.imwrite(str(folder / "a.png"), np.full((100, 200, 3), (10, 200, 30), np.uint8))  # BGR
-    src = BackgroundSource(sorted(folder.iterdir()))
-    img = src.sample(np.random.default_rng(0), (64, 48), user_prob=1.0)
-    assert img.shape == (48, 64, 3)
-    np.testing.assert_array_equal(img[0, 0], [30, 200, 10])  # read back as RGB
-    procedural = {src.sample(np.random.default_rng(i), (64, 48)).tobytes() for i in range(6)}
-    assert len(procedural) == 6
+    photos = load_photos(folder, torch.device("cpu"))
+    assert photos.shape == (1, 3, 384, 512) and photos.dtype == torch.uint8
+    img = backgrounds(torch.Generator().manual_seed(0), 2, (64, 48), photos, "cpu", photo_prob=1.0)
+    assert img.shape == (2, 3, 48, 64)
+    assert torch.allclose(img[:, :, 5:-5, 5:-5], torch.tensor([30, 200, 10]).view(1, 3, 1, 1) / 255, atol=1e-3)
+    procedural = backgrounds(torch.Generator().manual_seed(1), 6, (64, 48), photos, "cpu")  # photo_prob 0
+    assert len({im.numpy().tobytes() for im in procedural}) == 6
     generate_dataset(tmp_path / "out", 2, seed=1, workers=0, size=SIZE, backgrounds=folder, progress=False)
     assert len(DreamDataset(tmp_path / "out")) == 2
 

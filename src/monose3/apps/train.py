@@ -145,7 +145,7 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     for d in args.data:
         v.check_input_dir(d, "--data")
     if args.backgrounds:
-        from monose3.data.scenes.appearance import list_backgrounds
+        from monose3.data.inputs import list_backgrounds
 
         list_backgrounds(args.backgrounds)
     return SimpleNamespace(frames=load_datasets(args.data, args.robot) if args.data else [])

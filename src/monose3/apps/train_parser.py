@@ -27,7 +27,7 @@ def add_train_parser_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def check_train_parser(args: argparse.Namespace) -> None:
-    from monose3.data.scenes.appearance import list_backgrounds
+    from monose3.data.inputs import list_backgrounds
     from monose3.perception.config import PARSER_PRESETS
 
     if args.preset not in PARSER_PRESETS:

@@ -324,3 +324,19 @@ def load_pose(path: str | Path) -> np.ndarray:
     """An approximate camera-from-base from a JSON or YAML file (see :func:`pose_from_obj`)."""
     p = Path(path)
     return pose_from_obj(_read_structured(p, "pose"), str(p))
+
+
+IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".webp")
+
+
+def list_backgrounds(folder: str | Path | None) -> list[Path]:
+    """The images of a backgrounds folder (searched recursively); none without a folder."""
+    if folder is None:
+        return []
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise Monose3Error(f"backgrounds folder not found: {folder} (pass a folder of .jpg/.png images)")
+    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_EXTS and p.is_file())
+    if not files:
+        raise Monose3Error(f"no images ({', '.join(IMAGE_EXTS)}) in backgrounds folder {folder}")
+    return files

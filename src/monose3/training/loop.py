@@ -20,6 +20,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
+from monose3.data.scenes.appearance import load_photos
 from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.method.config import Config
@@ -41,7 +42,7 @@ from monose3.training.samples import (
     step_generator,
 )
 from monose3.training.shards import write_shards
-from monose3.training.synthetic import SceneDataset, load_photos, synthesize_crops
+from monose3.training.synthetic import SceneDataset, synthesize_crops
 
 CHECKPOINT = "checkpoint.pt"
 

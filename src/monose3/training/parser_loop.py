@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from monose3.data.scenes.appearance import load_photos
 from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import project
@@ -34,7 +35,7 @@ from monose3.training.checkpoints import read_parser
 from monose3.training.logs import CsvTensorBoardLog
 from monose3.training.samples import GlobalSampleSampler, step_generator
 from monose3.training.shards import write_shards
-from monose3.training.synthetic import SceneDataset, load_photos, synthesize_images
+from monose3.training.synthetic import SceneDataset, synthesize_images
 
 TRAIN_PROFILES = ("train", "reallike", "hard")
 PARSER_LOG_FIELDS = ["step", "samples", "lr", "mask", "keypoints", "samples_per_s"]

@@ -1,227 +1,377 @@
-"""The pixels of a synthetic frame: backgrounds, distractor shapes, occluders, augmentation,
-and the composite of a robot render over them (:func:`compose_frame`)."""
+"""The pixels of a synthetic frame around a robot render, batched in torch: backgrounds
+(procedural or photographs), distractor shapes, soft robot edges, occluders, colour jitter,
+blur, sensor noise and JPEG-like block artefacts.
+
+One implementation for ``monose3 generate`` (frames written to disk, a batch of one) and for
+the scenes synthesised on the training device (``monose3 train --synthetic``, the robot
+parser), so a :class:`~monose3.data.scenes.profiles.SceneProfile` means the same in both.
+Images are ``[B, 3, h, w]`` floats in [0, 1]; masks ``[B, 1, h, w]``.
+"""
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
+import torch
+import torch.nn.functional as F
+from torchvision.ops import roi_align
 
+from monose3.data.inputs import list_backgrounds
 from monose3.data.scenes.profiles import SceneProfile
 from monose3.errors import Monose3Error
 
-IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".webp")
+PHOTO_SIZE = (512, 384)  # every photograph is stored at this size; crops are resampled from it
+# scikit-image's bundled photographs (no download), the training backgrounds when it is installed.
+SKIMAGE_PHOTOS = ("astronaut", "coffee", "chelsea", "rocket", "hubble_deep_field", "immunohistochemistry", "camera")
+PALETTE_COLOURS = 6  # robot colours a low-contrast scene's background and shapes are drawn near
+PALETTE_SPREAD = 25.0 / 255  # how far (std) a colour drawn near the palette strays from it
+EDGE_BLUR = (0.4, 0.9)  # px: the soft robot edge of half the scenes (a real camera's optics)
+HUE_PROB, HUE_MAX_DEG = 0.3, 24.0  # a hue shift in 30 % of the images, by up to 24 deg
 
 
-def _random_color(rng: np.random.Generator, palette: np.ndarray | None = None, spread: float = 25.0) -> np.ndarray:
-    if palette is not None and len(palette):
-        base = palette[rng.integers(len(palette))]
-        return np.clip(base + rng.normal(0.0, spread, 3), 0, 255)
-    return rng.uniform(0, 255, 3)
+def _uniform(gen: torch.Generator, shape, lo: float, hi: float, device) -> torch.Tensor:
+    return lo + (hi - lo) * torch.rand(shape, generator=gen, device=device)
 
 
-def _grid(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    w, h = size
-    return np.meshgrid(np.linspace(-1, 1, w, dtype=np.float32), np.linspace(-1, 1, h, dtype=np.float32) * (h / w))
+def load_photos(
+    source: str | Path | Sequence[Path] | None, device: torch.device, bundled: bool = True
+) -> torch.Tensor | None:
+    """Background photographs ``[N, 3, 384, 512]`` uint8: a folder's images (or these image
+    files), else (``bundled``) scikit-image's when it is installed, else None (procedural only)."""
+    import cv2
 
-
-def _smooth_noise(rng: np.random.Generator, size: tuple[int, int], channels: int = 3) -> np.ndarray:
-    """Multi-octave value noise in [0, 1] (a cheap stand-in for Perlin noise)."""
-    w, h = size
-    out = np.zeros((h, w, channels), np.float32)
-    amp, total = 1.0, 0.0
-    for cells in (int(rng.integers(2, 5)), int(rng.integers(6, 16)), int(rng.integers(20, 60))):
-        small = rng.random((max(2, cells * h // w), cells, channels), dtype=np.float32)
-        up = cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC).reshape(h, w, channels)
-        out += amp * up
-        total += amp
-        amp *= float(rng.uniform(0.3, 0.6))
-    return np.clip(out / total, 0.0, 1.0)
-
-
-def draw_shapes(
-    rng: np.random.Generator, img: np.ndarray, count: int, palette: np.ndarray | None, scale: float = 1.0
-) -> None:
-    """Random filled polygons, ellipses, rectangles and thick lines, in place (uint8 image)."""
-    h, w = img.shape[:2]
-    for _ in range(count):
-        color = tuple(float(c) for c in _random_color(rng, palette))
-        kind = rng.integers(4)
-        cx, cy = rng.uniform(0, w), rng.uniform(0, h)
-        r = rng.uniform(0.03, 0.25) * max(w, h) * scale
-        if kind == 0:
-            n = int(rng.integers(3, 8))
-            ang = np.sort(rng.uniform(0, 2 * np.pi, n))
-            rad = r * rng.uniform(0.4, 1.0, n)
-            poly = np.stack([cx + rad * np.cos(ang), cy + rad * np.sin(ang)], 1).astype(np.int32)
-            cv2.fillPoly(img, [poly], color, lineType=cv2.LINE_AA)
-        elif kind == 1:
-            axes = (int(r), int(r * rng.uniform(0.3, 1.0)))
-            cv2.ellipse(img, (int(cx), int(cy)), axes, float(rng.uniform(0, 180)), 0, 360, color, -1, cv2.LINE_AA)
-        elif kind == 2:
-            p1 = (int(cx - r), int(cy - r * rng.uniform(0.2, 1.0)))
-            p2 = (int(cx + r), int(cy + r * rng.uniform(0.2, 1.0)))
-            cv2.rectangle(img, p1, p2, color, -1)
-        else:
-            ang = rng.uniform(0, np.pi)
-            d = np.array([np.cos(ang), np.sin(ang)]) * r * 2
-            p1, p2 = (int(cx - d[0]), int(cy - d[1])), (int(cx + d[0]), int(cy + d[1]))
-            cv2.line(img, p1, p2, color, max(1, int(rng.uniform(0.02, 0.15) * r)), cv2.LINE_AA)
-
-
-class BackgroundSource:
-    """Random backgrounds: colour fields, gradients, smooth noise, stripes/checkers, shapes,
-    and (optionally) random crops of the user's images (a few decoded images are cached)."""
-
-    def __init__(self, files: list[Path] | None = None, cache_size: int = 12):
-        self.files = list(files or [])
-        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._cache_size = cache_size
-
-    def _user_image(self, rng: np.random.Generator, size: tuple[int, int]) -> np.ndarray | None:
-        i = int(rng.integers(len(self.files)))
-        img = self._cache.get(i)
-        if img is None:
-            bgr = cv2.imread(str(self.files[i]), cv2.IMREAD_COLOR)
-            if bgr is None:
-                return None
-            img = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-            limit = 2 * max(size)
-            if max(img.shape[:2]) > limit:  # keep the cache small; crops are downscaled anyway
-                s = limit / max(img.shape[:2])
-                img = cv2.resize(img, (int(img.shape[1] * s), int(img.shape[0] * s)), interpolation=cv2.INTER_AREA)
-            self._cache[i] = img
-            if len(self._cache) > self._cache_size:
-                self._cache.popitem(last=False)
-        w, h = size
-        ih, iw = img.shape[:2]
-        crop_w = min(iw, ih * w / h) * rng.uniform(0.4, 1.0)
-        crop_h = crop_w * h / w
-        x0, y0 = rng.uniform(0, iw - crop_w), rng.uniform(0, ih - crop_h)
-        crop = img[int(y0) : int(y0 + crop_h), int(x0) : int(x0 + crop_w)]
-        out = cv2.resize(crop, (w, h), interpolation=cv2.INTER_AREA)
-        return out[:, ::-1].copy() if rng.random() < 0.5 else out
-
-    def sample(
-        self, rng: np.random.Generator, size: tuple[int, int], palette: np.ndarray | None = None, user_prob: float = 0.0
-    ) -> np.ndarray:
-        """An RGB uint8 background; ``palette`` (colours, ``[P, 3]``) steers it towards those colours."""
-        w, h = size
-        if self.files and rng.random() < user_prob:
-            img = self._user_image(rng, size)
-            if img is not None:
-                return img
-        c1, c2 = (_random_color(rng, palette).astype(np.float32) for _ in range(2))
-        kind = rng.integers(5)
-        if kind == 0:  # colour field with a slow shading
-            shade = _smooth_noise(rng, size, 1) - 0.5
-            img = c1[None, None, :] + shade * rng.uniform(10, 60)
-        elif kind == 1:  # linear or radial gradient
-            x, y = _grid(size)
-            if rng.random() < 0.5:
-                ang = rng.uniform(0, 2 * np.pi)
-                t = (x * np.cos(ang) + y * np.sin(ang)) * 0.5 + 0.5
-            else:
-                cx, cy = rng.uniform(-1, 1, 2)
-                t = np.sqrt((x - cx) ** 2 + (y - cy) ** 2) / rng.uniform(0.5, 2.0)
-            t = np.clip(t, 0, 1)[..., None]
-            img = c1 * (1 - t) + c2 * t
-        elif kind == 2:  # smooth noise, coloured or between two colours
-            n = _smooth_noise(rng, size, 3 if rng.random() < 0.5 else 1)
-            img = c1 * (1 - n) + c2 * n
-        elif kind == 3:  # stripes or checkers
-            x, y = _grid(size)
-            ang, freq = rng.uniform(0, np.pi), rng.uniform(2, 25)
-            s = np.sin(freq * np.pi * (x * np.cos(ang) + y * np.sin(ang)))
-            if rng.random() < 0.5:
-                s = s * np.sin(freq * np.pi * (-x * np.sin(ang) + y * np.cos(ang)))
-            t = (s > 0).astype(np.float32)[..., None] if rng.random() < 0.6 else (s[..., None] * 0.5 + 0.5)
-            img = c1 * (1 - t) + c2 * t
-        else:  # many shapes on a colour field
-            img = np.empty((h, w, 3), np.uint8)
-            img[:] = np.clip(c1, 0, 255).astype(np.uint8)
-            draw_shapes(rng, img, int(rng.integers(10, 40)), palette, scale=0.7)
-            return img
-        return np.clip(img, 0, 255).astype(np.uint8)
-
-
-def _robot_palette(rgb: np.ndarray, mask: np.ndarray, rng: np.random.Generator, n: int = 6) -> np.ndarray | None:
-    """A few colours of the rendered robot (backgrounds close to them are the hard case)."""
-    ys, xs = np.nonzero(mask)
-    if len(ys) == 0:
+    images = []
+    if source is not None:
+        files = list_backgrounds(source) if isinstance(source, str | Path) else [Path(p) for p in source]
+        for path in files:
+            bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if bgr is not None:
+                images.append(bgr[..., ::-1])
+        if not images:
+            raise Monose3Error(f"no readable images in backgrounds {source}; give .jpg/.png photographs")
+    elif bundled:
+        try:
+            import skimage.data
+        except ImportError:
+            return None
+        for name in SKIMAGE_PHOTOS:
+            try:
+                img = getattr(skimage.data, name)()
+            except Exception:  # noqa: BLE001 - a photo the installed version lacks is skipped
+                continue
+            images.append(np.stack([img] * 3, -1) if img.ndim == 2 else img[..., :3])
+    if not images:
         return None
-    pick = rng.integers(len(ys), size=n)
-    return rgb[ys[pick], xs[pick]].astype(np.float64)
+    resized = [cv2.resize(np.ascontiguousarray(im), PHOTO_SIZE, interpolation=cv2.INTER_AREA) for im in images]
+    return torch.from_numpy(np.stack(resized)).permute(0, 3, 1, 2).contiguous().to(device)
 
 
-def _add_occluders(
-    rng: np.random.Generator, img: np.ndarray, mask: np.ndarray, profile: SceneProfile, palette: np.ndarray | None
-) -> float:
-    """Shapes in front of the robot, each kept only while the total hidden robot area stays under
-    ``profile.max_occlusion``. Returns the hidden fraction."""
-    area = int(mask.sum())
-    if area == 0:
-        return 0.0
-    ys, xs = np.nonzero(mask)
-    x0, x1, y0, y1 = xs.min(), xs.max(), ys.min(), ys.max()
-    extent = max(x1 - x0, y1 - y0, 8)
-    hidden = np.zeros(mask.shape, bool)
-    h, w = mask.shape
-    for _ in range(int(rng.integers(1, 4))):
-        occ = np.zeros((h, w), np.uint8)
-        cx, cy = rng.uniform(x0, x1 + 1), rng.uniform(y0, y1 + 1)
-        r = rng.uniform(0.08, 0.35) * extent
-        kind = rng.integers(3)
-        if kind == 0:
-            n = int(rng.integers(3, 7))
-            ang = np.sort(rng.uniform(0, 2 * np.pi, n))
-            poly = np.stack([cx + r * np.cos(ang), cy + r * np.sin(ang)], 1).astype(np.int32)
-            cv2.fillPoly(occ, [poly], 1)
-        elif kind == 1:
-            cv2.ellipse(
-                occ, (int(cx), int(cy)), (int(r), int(r * rng.uniform(0.3, 1))), rng.uniform(0, 180), 0, 360, 1, -1
+def robot_palettes(gen: torch.Generator, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """:data:`PALETTE_COLOURS` colours of each rendered robot ``[B, P, 3]`` (pixels of ``rgb`` in
+    ``mask``; grey where the robot is not in view): backgrounds close to them are the hard case."""
+    b = len(rgb)
+    weights = mask.flatten(1).float() + 1e-6
+    pick = torch.multinomial(weights, PALETTE_COLOURS, replacement=True, generator=gen)
+    colours = torch.gather(rgb.flatten(2), 2, pick[:, None].expand(b, 3, -1)).transpose(1, 2)
+    return torch.where(mask.flatten(1).any(1)[:, None, None], colours, torch.full_like(colours, 0.5))
+
+
+def random_colours(gen: torch.Generator, n: int, device, palette: torch.Tensor | None = None) -> torch.Tensor:
+    """``[n, 3, 1, 1]`` colours: uniform, or near a random colour of each image's ``palette``
+    ``[n, P, 3]`` where its rows are not NaN (the low-contrast scenes)."""
+    colours = torch.rand(n, 3, generator=gen, device=device)
+    if palette is not None:
+        pick = torch.randint(0, palette.shape[1], (n,), generator=gen, device=device)
+        near = palette[torch.arange(n, device=device), pick] + PALETTE_SPREAD * torch.randn(
+            n, 3, generator=gen, device=device
+        )
+        colours = torch.where(near.isnan(), colours, near.clamp(0, 1))
+    return colours[:, :, None, None]
+
+
+def smooth_noise(gen: torch.Generator, n: int, size: tuple[int, int], channels: int, device) -> torch.Tensor:
+    """Value noise in [0, 1] ``[n, c, h, w]``: a coarse random grid and a finer one, upsampled."""
+    w, h = size
+    out = torch.zeros(n, channels, h, w, device=device)
+    for cells, amp in ((3, 1.0), (12, 0.4)):
+        coarse = torch.rand(n, channels, max(2, cells * h // w), cells, generator=gen, device=device)
+        out += amp * F.interpolate(coarse, size=(h, w), mode="bicubic", align_corners=False)
+    return (out / 1.4).clamp(0, 1)
+
+
+def _grid(n: int, size: tuple[int, int], device) -> tuple[torch.Tensor, torch.Tensor]:
+    w, h = size
+    y, x = torch.meshgrid(
+        torch.linspace(-1, 1, h, device=device) * h / w, torch.linspace(-1, 1, w, device=device), indexing="ij"
+    )
+    return x.expand(n, 1, h, w), y.expand(n, 1, h, w)
+
+
+def backgrounds(
+    gen: torch.Generator,
+    n: int,
+    size: tuple[int, int],
+    photos: torch.Tensor | None,
+    device,
+    photo_prob: float | torch.Tensor = 0.0,
+    palette: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``[n, 3, h, w]`` random backgrounds: shaded colour fields, gradients, smooth noise,
+    stripes and checkers in colours near ``palette`` (:func:`random_colours`), or, with
+    ``photo_prob`` (one for all or ``[n]``), random crops of ``photos``."""
+    w, h = size
+    c1, c2 = random_colours(gen, n, device, palette), random_colours(gen, n, device, palette)
+    x, y = _grid(n, size, device)
+    ang = _uniform(gen, (n, 1, 1, 1), 0, math.pi, device)
+    along = x * torch.cos(ang) + y * torch.sin(ang)
+    freq = _uniform(gen, (n, 1, 1, 1), 2, 25, device)
+    stripes = torch.sin(freq * math.pi * along)
+    checker = stripes * torch.sin(freq * math.pi * (y * torch.cos(ang) - x * torch.sin(ang)))
+    noise = smooth_noise(gen, n, size, 3, device)
+    kinds = [
+        c1 + (noise[:, :1] - 0.5) * 0.4,  # colour field with slow shading
+        c1 + (c2 - c1) * (along * 0.5 + 0.5).clamp(0, 1),  # gradient
+        c1 + (c2 - c1) * noise,  # smooth noise between two colours
+        c1 + (c2 - c1) * (stripes > 0).float(),
+        c1 + (c2 - c1) * (checker > 0).float(),
+    ]
+    kind = torch.randint(0, len(kinds), (n,), generator=gen, device=device)
+    out = torch.zeros(n, 3, h, w, device=device)
+    for k, img in enumerate(kinds):
+        sel = kind == k
+        out[sel] = img.expand(n, 3, h, w)[sel]
+    photo = torch.rand(n, generator=gen, device=device) < photo_prob
+    if photos is not None and photo.any():
+        out[photo] = photo_crops(gen, photos, int(photo.sum()), size, device)
+    return out.clamp(0, 1)
+
+
+def photo_crops(gen: torch.Generator, photos: torch.Tensor, n: int, size: tuple[int, int], device) -> torch.Tensor:
+    """``n`` random crops of random photographs at ``size``, half of them mirrored."""
+    w, h = size
+    pw, ph = PHOTO_SIZE
+    idx = torch.randint(0, len(photos), (n,), generator=gen, device=device)
+    crop_w = _uniform(gen, (n,), 0.3, 1.0, device) * min(pw, ph * w / h)
+    crop_h = crop_w * h / w
+    x0 = torch.rand(n, generator=gen, device=device) * (pw - crop_w)
+    y0 = torch.rand(n, generator=gen, device=device) * (ph - crop_h)
+    rois = torch.stack([torch.arange(n, device=device).float(), x0, y0, x0 + crop_w, y0 + crop_h], 1)
+    crops = roi_align(photos[idx].float() / 255, rois, (h, w), 1.0, sampling_ratio=2, aligned=True)
+    mirror = torch.rand(n, generator=gen, device=device) < 0.5
+    return torch.where(mirror[:, None, None, None], crops.flip(-1), crops)
+
+
+def shape_masks(gen: torch.Generator, n: int, size: tuple[int, int], centre, radius, device) -> torch.Tensor:
+    """One random ellipse, rectangle or bar per image ``[n, 1, h, w]`` (float 0/1), at ``centre``
+    ``[n, 2]`` in [-1, 1] coordinates with size ``radius`` ``[n]``."""
+    x, y = _grid(n, size, device)
+    ang = _uniform(gen, (n, 1, 1, 1), 0, math.pi, device)
+    dx, dy = x - centre[:, 0, None, None, None], y - centre[:, 1, None, None, None]
+    u = dx * torch.cos(ang) + dy * torch.sin(ang)
+    v = -dx * torch.sin(ang) + dy * torch.cos(ang)
+    r = radius[:, None, None, None]
+    aspect = _uniform(gen, (n, 1, 1, 1), 0.15, 1.0, device)
+    kind = torch.randint(0, 3, (n, 1, 1, 1), generator=gen, device=device)
+    ellipse = (u / r) ** 2 + (v / (r * aspect)) ** 2 < 1
+    rect = (u.abs() < r) & (v.abs() < r * aspect)
+    bar = (u.abs() < 2.5 * r) & (v.abs() < 0.12 * r)
+    return torch.where(kind == 0, ellipse, torch.where(kind == 1, rect, bar)).float()
+
+
+@dataclass
+class Shapes:
+    """How :func:`paint_shapes` draws: ``counts`` ``[n]`` shapes on each image, of radius
+    ``scale`` (fractions of the width); ``centre_at`` ``[n, 2]`` gathers them there (occluders
+    near the robot); colours near ``palette``; textured with smooth noise when ``textured``."""
+
+    counts: torch.Tensor
+    scale: tuple[float, float]
+    centre_at: torch.Tensor | None = None
+    palette: torch.Tensor | None = None
+    textured: bool = False
+
+
+def paint_shapes(
+    gen: torch.Generator, img: torch.Tensor, shapes: Shapes, robot: torch.Tensor | None = None, max_hidden: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Paint ``shapes`` onto ``img``; a shape that would hide more than ``max_hidden`` of the
+    ``robot`` mask (with those painted before it) is left out. Returns the image and where it
+    was painted ``[n, 1, h, w]``."""
+    n, _, h, w = img.shape
+    device = img.device
+    painted = torch.zeros(n, 1, h, w, device=device)
+    area = robot.sum((1, 2, 3)).clamp_min(1) if robot is not None else None
+    for k in range(int(shapes.counts.max()) if len(shapes.counts) else 0):
+        on = (shapes.counts > k).float()[:, None, None, None]
+        centre = _uniform(gen, (n, 2), -1, 1, device) * torch.tensor([1.0, h / w], device=device)
+        if shapes.centre_at is not None:
+            centre = shapes.centre_at + 0.3 * (centre - shapes.centre_at)
+        radius = _uniform(gen, (n,), *shapes.scale, device)
+        mask = shape_masks(gen, n, (w, h), centre, radius, device) * on
+        if robot is not None:
+            hidden = (torch.maximum(painted, mask) * robot).sum((1, 2, 3)) / area
+            mask = mask * (hidden <= max_hidden).float()[:, None, None, None]
+        colour = random_colours(gen, n, device, shapes.palette)
+        if shapes.textured:
+            colour = colour + (smooth_noise(gen, n, (w, h), 1, device) - 0.5) * _uniform(
+                gen, (n, 1, 1, 1), 0, 0.25, device
             )
-        else:  # a bar crossing the robot (cable, table edge, pole)
-            ang = rng.uniform(0, np.pi)
-            d = np.array([np.cos(ang), np.sin(ang)]) * extent
-            cv2.line(occ, (int(cx - d[0]), int(cy - d[1])), (int(cx + d[0]), int(cy + d[1])), 1, max(2, int(r * 0.4)))
-        occ = occ.astype(bool)
-        if ((hidden | occ) & mask).sum() > profile.max_occlusion * area:
-            continue
-        hidden |= occ
-        color = _random_color(rng, palette if rng.random() < 0.5 else None)
-        texture = (_smooth_noise(rng, (w, h), 1)[..., 0] - 0.5) * rng.uniform(0, 60)
-        img[occ] = np.clip(color[None, :] + texture[occ][:, None], 0, 255).astype(np.uint8)
-    return float((hidden & mask).sum() / area)
+        img = img * (1 - mask) + colour.clamp(0, 1) * mask
+        painted = torch.maximum(painted, mask)
+    return img, painted
 
 
-def _augment(rng: np.random.Generator, img: np.ndarray, profile: SceneProfile) -> np.ndarray:
-    """Colour jitter (brightness, contrast, saturation, hue), blur and sensor noise.
+def gaussian_blur(img: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """Per-image Gaussian blur (``sigma`` ``[B]`` pixels; 0 = none), separable, as a grouped conv."""
+    b, c, h, w = img.shape
+    radius = 3
+    x = torch.arange(-radius, radius + 1, device=img.device, dtype=img.dtype)
+    k = torch.exp(-(x[None] ** 2) / (2 * sigma.clamp_min(1e-3)[:, None] ** 2))
+    k = torch.where(sigma[:, None] > 0.05, k, (x[None] == 0).to(img.dtype))
+    k = (k / k.sum(1, keepdim=True)).repeat_interleave(c, 0)  # [B*c, 2r+1]
+    flat = F.pad(img.reshape(1, b * c, h, w), (radius, radius, radius, radius), mode="replicate")
+    flat = F.conv2d(flat, k[:, None, None, :], groups=b * c)
+    flat = F.conv2d(flat, k[:, None, :, None], groups=b * c)
+    return flat.reshape(b, c, h, w)
 
-    Written with OpenCV's whole-image operations: this runs once per frame at full size.
-    """
+
+_JPEG_LUMA = torch.tensor(
+    [
+        [16, 11, 10, 16, 24, 40, 51, 61],
+        [12, 12, 14, 19, 26, 58, 60, 55],
+        [14, 13, 16, 24, 40, 57, 69, 56],
+        [14, 17, 22, 29, 51, 87, 80, 62],
+        [18, 22, 37, 56, 68, 109, 103, 77],
+        [24, 35, 55, 64, 81, 104, 113, 92],
+        [49, 64, 78, 87, 103, 121, 120, 101],
+        [72, 92, 95, 98, 112, 100, 103, 99],
+    ],
+    dtype=torch.float32,
+)
+
+
+def jpeg_like(img: torch.Tensor, quality: torch.Tensor) -> torch.Tensor:
+    """JPEG's lossy step on 8x8 blocks (DCT, quantise with the standard table at ``quality``
+    ``[B]`` in 1..100, inverse DCT), per RGB channel; sizes not divisible by 8 are padded."""
+    b, c, h, w = img.shape
+    ph, pw = (-h) % 8, (-w) % 8
+    x = F.pad(img, (0, pw, 0, ph), mode="replicate") * 255 - 128
+    n = torch.arange(8, dtype=img.dtype, device=img.device)
+    dct = torch.cos((2 * n[None] + 1) * n[:, None] * math.pi / 16) * torch.where(n == 0, 1 / math.sqrt(8), 0.5)[:, None]
+    blocks = x.unfold(2, 8, 8).unfold(3, 8, 8)  # [B, c, H/8, W/8, 8, 8]
+    coef = dct @ blocks @ dct.T
+    scale = torch.where(quality < 50, 50 / quality, 2 - quality / 50).clamp_min(0.01)
+    table = (_JPEG_LUMA.to(img) * scale[:, None, None, None, None, None]).clamp_min(1)
+    blocks = dct.T @ (torch.round(coef / table) * table) @ dct
+    out = blocks.permute(0, 1, 2, 4, 3, 5).reshape(b, c, h + ph, w + pw)[..., :h, :w]
+    return ((out + 128) / 255).clamp(0, 1)
+
+
+def shift_hue(img: torch.Tensor, degrees: torch.Tensor) -> torch.Tensor:
+    """Rotate each image's colours about the grey axis by ``degrees`` ``[B]`` (a hue shift)."""
+    axis = torch.full((3,), 1 / math.sqrt(3), dtype=img.dtype, device=img.device)
+    theta = torch.deg2rad(degrees.to(img.dtype))[:, None, None]
+    cross = torch.tensor([[0, -1, 1], [1, 0, -1], [-1, 1, 0]], dtype=img.dtype, device=img.device) / math.sqrt(3)
+    eye = torch.eye(3, dtype=img.dtype, device=img.device)
+    rot = torch.cos(theta) * eye + torch.sin(theta) * cross + (1 - torch.cos(theta)) * torch.outer(axis, axis)
+    return torch.einsum("bij,bjhw->bihw", rot, img).clamp(0, 1)
+
+
+def augment(gen: torch.Generator, img: torch.Tensor, profile: SceneProfile, jpeg: bool = True) -> torch.Tensor:
+    """Colour jitter (brightness, contrast, saturation, hue), blur, sensor noise and, with
+    ``jpeg``, JPEG artefacts (a frame written to disk gets real ones instead)."""
+    n, device = img.shape[0], img.device
     j = profile.color_jitter
-    out = img
-    if j > 0:
-        bright, contrast, sat = rng.uniform(1 - j, 1 + j, 3)
-        mean = float(np.mean(cv2.mean(img)[:3]))
-        # brightness then contrast about the mean, as one affine map
-        out = cv2.convertScaleAbs(img, alpha=bright * contrast, beta=bright * mean * (1 - contrast))
-        gray = cv2.cvtColor(cv2.cvtColor(out, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
-        out = cv2.addWeighted(out, float(sat), gray, float(1 - sat), 0.0)  # saturation (saturating uint8)
-        if rng.random() < 0.3:  # hue
-            hsv = cv2.cvtColor(out, cv2.COLOR_RGB2HSV)
-            hsv[..., 0] = ((hsv[..., 0].astype(np.int16) + int(rng.integers(-12, 13))) % 180).astype(np.uint8)
-            out = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
-    if rng.random() < profile.blur_prob:
-        out = cv2.GaussianBlur(out, (0, 0), float(rng.uniform(0.4, 1.5)))
-    std = rng.uniform(*profile.noise_std)
-    if std > 0.5 and rng.random() < 0.7:
-        noise = rng.standard_normal(out.shape, dtype=np.float32) * np.float32(std)
-        out = cv2.add(out, noise, dtype=cv2.CV_8U)  # rounds and saturates to 0..255
-    return np.ascontiguousarray(out)
+    bright, contrast, sat = (_uniform(gen, (n, 1, 1, 1), 1 - j, 1 + j, device) for _ in range(3))
+    mean = img.mean((1, 2, 3), keepdim=True)
+    img = (img - mean) * contrast + mean * bright
+    grey = img.mean(1, keepdim=True)
+    img = (grey + (img - grey) * sat).clamp(0, 1)
+    hue = torch.rand(n, generator=gen, device=device) < HUE_PROB
+    img = shift_hue(img, torch.where(hue, _uniform(gen, (n,), -HUE_MAX_DEG, HUE_MAX_DEG, device), 0.0))
+    blur = torch.rand(n, generator=gen, device=device) < profile.blur_prob
+    img = gaussian_blur(img, torch.where(blur, _uniform(gen, (n,), 0.4, 1.5, device), torch.zeros(n, device=device)))
+    std = _uniform(gen, (n, 1, 1, 1), *profile.noise_std, device) / 255
+    img = (img + std * torch.randn(img.shape, generator=gen, device=device)).clamp(0, 1)
+    if not jpeg:
+        return img
+    return jpeg_like(img, _uniform(gen, (n,), *profile.jpeg_quality, device).round())
+
+
+def scene_background(
+    gen: torch.Generator,
+    n: int,
+    size: tuple[int, int],
+    profile: SceneProfile,
+    photos: torch.Tensor | None,
+    device,
+    photo_share: float | torch.Tensor = 1.0,
+    palette: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """What stands behind the robot ``[n, 3, h, w]``: a background (a photograph with
+    ``profile.user_background_prob`` times ``photo_share``) and the profile's distractor shapes."""
+    img = backgrounds(gen, n, size, photos, device, profile.user_background_prob * photo_share, palette)
+    lo, hi = profile.distractors
+    counts = torch.randint(lo, hi + 1, (n,), generator=gen, device=device)
+    return paint_shapes(gen, img, Shapes(counts, (0.05, 0.4), palette=palette))[0]
+
+
+@dataclass
+class Composite:
+    """A composed scene before augmentation: ``image`` ``[B, 3, h, w]``, the robot's visible
+    (unoccluded) ``mask`` ``[B, 1, h, w]``, the fraction of the robot occluders hide ``[B]``
+    and which scenes drew their colours near the robot's (``low_contrast`` ``[B]``)."""
+
+    image: torch.Tensor
+    mask: torch.Tensor
+    occluded: torch.Tensor
+    low_contrast: torch.Tensor
+
+
+def compose(
+    gen: torch.Generator,
+    robot_rgb: torch.Tensor,
+    robot_mask: torch.Tensor,
+    profile: SceneProfile,
+    photos: torch.Tensor | None,
+    occluder_centre: torch.Tensor,
+    background: torch.Tensor | None = None,
+) -> Composite:
+    """The robot renders ``robot_rgb`` ``[B, 3, h, w]`` (``robot_mask`` ``[B, 1, h, w]``) over a
+    background with distractors, with soft edges in half the scenes, then occluders gathered
+    near ``occluder_centre`` ``[B, 2]`` ([-1, 1] coordinates) hiding at most
+    ``profile.max_occlusion`` of the robot. A ``profile.low_contrast_prob`` share of the scenes
+    draws background and shapes near the robot's own colours (and no photograph). A given
+    ``background`` ``[B, 3, h, w]`` replaces the drawn one (a static camera's scene)."""
+    n, _, h, w = robot_rgb.shape
+    device = robot_rgb.device
+    robot = robot_mask.float()
+    low = torch.rand(n, generator=gen, device=device) < profile.low_contrast_prob
+    palette = torch.where(low[:, None, None], robot_palettes(gen, robot_rgb, robot), float("nan"))
+    if background is None:
+        background = scene_background(gen, n, (w, h), profile, photos, device, torch.where(low, 0.0, 1.0), palette)
+    img = background
+    soft = torch.rand(n, generator=gen, device=device) < 0.5
+    alpha = gaussian_blur(robot, torch.where(soft, _uniform(gen, (n,), *EDGE_BLUR, device), 0.0))
+    img = img * (1 - alpha) + robot_rgb * alpha
+    occluded_scene = torch.rand(n, generator=gen, device=device) < profile.occluder_prob
+    counts = torch.where(occluded_scene, torch.randint(1, 4, (n,), generator=gen, device=device), 0)
+    occluders = Shapes(counts, (0.05, 0.25), occluder_centre, palette, textured=True)
+    img, occluded = paint_shapes(gen, img, occluders, robot, profile.max_occlusion)
+    hidden = (occluded * robot).sum((1, 2, 3)) / robot.sum((1, 2, 3)).clamp_min(1)
+    return Composite(img, robot * (1 - occluded), hidden, low)
+
+
+def mask_centre(mask: torch.Tensor) -> torch.Tensor:
+    """The centre ``[B, 2]`` of each mask's pixels in [-1, 1] x [-h/w, h/w] coordinates (0 where empty)."""
+    b, _, h, w = mask.shape
+    x, y = _grid(b, (w, h), mask.device)
+    total = mask.sum((1, 2, 3)).clamp_min(1e-6)
+    return torch.stack([(x * mask).sum((1, 2, 3)) / total, (y * mask).sum((1, 2, 3)) / total], 1)
 
 
 def compose_frame(
@@ -229,40 +379,15 @@ def compose_frame(
     robot_rgb: np.ndarray,
     mask: np.ndarray,
     profile: SceneProfile,
-    backgrounds: BackgroundSource,
-) -> tuple[np.ndarray, dict]:
-    """The final image from a robot render: background, distractors, soft edges, occluders, augmentation."""
-    h, w = mask.shape
-    low_contrast = rng.random() < profile.low_contrast_prob
-    palette = _robot_palette(robot_rgb, mask, rng) if low_contrast else None
-    bg = backgrounds.sample(rng, (w, h), palette, 0.0 if low_contrast else profile.user_background_prob)
-    n_distract = int(rng.integers(profile.distractors[0], profile.distractors[1] + 1))
-    if n_distract:
-        draw_shapes(rng, bg, n_distract, palette if rng.random() < 0.5 else None, scale=0.5)
-    soften = float(rng.uniform(0.4, 0.9)) if rng.random() < 0.5 else 0.0
-    img = bg
-    ys, xs = np.nonzero(mask.any(1))[0], np.nonzero(mask.any(0))[0]
-    if len(ys):  # blend only around the robot (soft edges spread by < 4 px)
-        y0, y1 = max(ys[0] - 4, 0), min(ys[-1] + 5, h)
-        x0, x1 = max(xs[0] - 4, 0), min(xs[-1] + 5, w)
-        alpha = mask[y0:y1, x0:x1].astype(np.float32)
-        if soften:
-            alpha = cv2.GaussianBlur(alpha, (0, 0), soften)
-        alpha = alpha[..., None]
-        fg, back = robot_rgb[y0:y1, x0:x1].astype(np.float32), bg[y0:y1, x0:x1].astype(np.float32)
-        img[y0:y1, x0:x1] = (fg * alpha + back * (1 - alpha) + 0.5).astype(np.uint8)
-    hidden = _add_occluders(rng, img, mask, profile, palette) if rng.random() < profile.occluder_prob else 0.0
-    img = _augment(rng, img, profile)
-    return img, {"low_contrast": bool(low_contrast), "occluded": hidden, "distractors": n_distract}
-
-
-def list_backgrounds(folder: str | Path | None) -> list[Path]:
-    if folder is None:
-        return []
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise Monose3Error(f"backgrounds folder not found: {folder} (pass a folder of .jpg/.png images)")
-    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_EXTS and p.is_file())
-    if not files:
-        raise Monose3Error(f"no images ({', '.join(IMAGE_EXTS)}) in backgrounds folder {folder}")
-    return files
+    photos: torch.Tensor | None,
+    background: torch.Tensor | None = None,
+) -> tuple[np.ndarray, float]:
+    """One frame to write to disk from a robot render (``robot_rgb`` ``H x W x 3`` uint8, ``mask``
+    ``H x W``): :func:`compose` then :func:`augment` without JPEG (the file brings its own),
+    drawn from ``rng``. Returns the RGB uint8 image and the fraction of the robot occluded."""
+    gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
+    rgb = torch.from_numpy(np.ascontiguousarray(robot_rgb)).permute(2, 0, 1)[None].float() / 255
+    robot = torch.from_numpy(np.ascontiguousarray(mask))[None, None].float()
+    scene = compose(gen, rgb, robot, profile, photos, mask_centre(robot), background)
+    img = augment(gen, scene.image, profile, jpeg=False)
+    return (img[0].permute(1, 2, 0) * 255).round().to(torch.uint8).numpy(), float(scene.occluded[0])

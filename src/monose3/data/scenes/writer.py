@@ -25,11 +25,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from monose3 import atomic
 from monose3.data.dream import DreamDataset
 from monose3.data.dream_writer import write_camera_settings, write_frame
-from monose3.data.scenes.appearance import BackgroundSource, compose_frame, list_backgrounds
+from monose3.data.inputs import list_backgrounds
+from monose3.data.scenes.appearance import compose_frame, load_photos
 from monose3.data.scenes.profiles import SceneProfile, get_profile
 from monose3.data.scenes.sampling import Scene, frame_rng, sample_scene
 from monose3.errors import Monose3Error
@@ -83,7 +85,8 @@ class FrameMaker:
         self.job = job
         self.model = RobotModel(job.spec)
         self.renderer = make_renderer(self.model, job.backend)
-        self.backgrounds = BackgroundSource([Path(p) for p in job.backgrounds])
+        # The user's photographs only (never scikit-image's): a folder's frames depend on its arguments alone.
+        self.photos = load_photos(job.backgrounds, torch.device("cpu")) if job.backgrounds else None
 
     def make(self, index: int) -> tuple[np.ndarray, Scene, dict]:
         rng = frame_rng(self.job.seed, index)
@@ -91,9 +94,9 @@ class FrameMaker:
         robot_rgb, mask = self.renderer.render(
             RenderJob(scene.joints, scene.pose, scene.K, self.job.size, scene.lighting)
         )
-        img, info = compose_frame(rng, robot_rgb, mask, self.job.profile, self.backgrounds)
-        info["quality"] = int(rng.integers(self.job.profile.jpeg_quality[0], self.job.profile.jpeg_quality[1] + 1))
-        return img, scene, info
+        img, occluded = compose_frame(rng, robot_rgb, mask, self.job.profile, self.photos)
+        quality = int(rng.integers(self.job.profile.jpeg_quality[0], self.job.profile.jpeg_quality[1] + 1))
+        return img, scene, {"occluded": occluded, "quality": quality}
 
     def write(self, index: int) -> int:
         img, scene, info = self.make(index)
