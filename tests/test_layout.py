@@ -289,3 +289,74 @@ def test_the_projection_pattern_finds_camera_py():
 def test_projection_is_written_only_in_geometry_camera():
     copies = [line for path in python_files("src") if path != CAMERA for line in projection_lines(path)]
     assert not copies, _report(copies)
+
+
+# --- (e) one home per concept ---------------------------------------------------------------------
+
+# The modules that drive every denoiser design alike (the designs live in method/designs/).
+DESIGN_DRIVERS = (
+    PACKAGE / "method" / "estimator.py",
+    PACKAGE / "training" / "loop.py",
+    PACKAGE / "training" / "objective.py",
+)
+APPEARANCE = PACKAGE / "data" / "scenes" / "appearance.py"
+ATOMIC = PACKAGE / "atomic.py"
+# Calls that write a file by renaming a temporary one: atomic.py's job alone.
+ATOMIC_CALLS = {("os", "replace"), ("os", "rename"), ("tempfile", "mkstemp"), ("tempfile", "NamedTemporaryFile")}
+
+
+def design_names() -> set[str]:
+    """``DESIGNS`` as method/config.py writes it (parsed, not imported)."""
+    for node in parse(PACKAGE / "method" / "config.py").body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "DESIGNS" for t in node.targets):
+            return set(ast.literal_eval(node.value))
+    return set()
+
+
+def test_no_design_is_named_where_every_design_is_driven_alike():
+    names = design_names()
+    assert "flow-solve" in names, "DESIGNS not found in method/config.py"
+    violations = [
+        f"{_rel(path)}:{node.lineno} {node.value!r}"
+        for path in DESIGN_DRIVERS
+        for node in ast.walk(parse(path))
+        if isinstance(node, ast.Constant) and node.value in names
+    ]
+    violations += [
+        f"{_rel(path)}:{node.lineno} .{node.attr}"
+        for path in DESIGN_DRIVERS
+        for node in ast.walk(parse(path))
+        if isinstance(node, ast.Attribute) and node.attr in ("design", "needs_surface", "predicts_flow")
+    ]
+    assert not violations, _report(violations)
+
+
+def top_level_functions(path: Path) -> set[str]:
+    return {node.name for node in parse(path).body if isinstance(node, ast.FunctionDef)}
+
+
+def test_scene_appearance_is_written_once():
+    """No other module defines a function of appearance.py's (a second set of backgrounds,
+    shapes, augmentations), and only it blurs, adds noise or JPEG-compresses a scene."""
+    own = top_level_functions(APPEARANCE)
+    assert {"backgrounds", "augment", "compose", "jpeg_like"} <= own
+    violations = [
+        f"{_rel(path)}: defines {sorted(top_level_functions(path) & own)}"
+        for path in python_files("src/monose3")
+        if path != APPEARANCE and top_level_functions(path) & own
+    ]
+    assert not violations, _report(violations)
+
+
+def test_atomic_writes_go_through_atomic_py():
+    violations = [
+        f"{_rel(path)}:{node.lineno} {ast.unparse(node.func)}"
+        for path in python_files("src/monose3")
+        if path != ATOMIC
+        for node in ast.walk(parse(path))
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and isinstance(node.func.value, ast.Name)
+        and (node.func.value.id, node.func.attr) in ATOMIC_CALLS
+    ]
+    assert not violations, _report(violations)

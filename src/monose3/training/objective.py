@@ -29,7 +29,7 @@ def objective(
     loss = parts["xy"] + config.train.rot_weight * parts["rot"] + parts["z"]
     if config.train.flow_weight > 0:
         if out.field is None:
-            raise Monose3Error(f"the {config.network.design} design predicts no displacement field; set flow_weight 0")
+            raise Monose3Error("flow_weight > 0 needs a design that predicts a displacement field; set it to 0")
         cells = tuple(out.field.shape[-2:])
         target, mask = field_targets(surface, batch["pose_ref_0"], config.network.render_size, cells)
         parts["flow"] = flow_loss(out.field.float(), target, mask)
