@@ -14,7 +14,7 @@ import torch
 from monose3.data.scenes.sampling import look_at as look_at_rotation
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix
-from monose3.method.config import NetworkConfig, get_preset
+from monose3.method.config import NetworkConfig, get_preset, with_section
 from monose3.method.designs import build_denoiser
 from monose3.method.flow_pose import Surface, render_surface
 from monose3.robot import RobotModel
@@ -163,3 +163,42 @@ def slab_surface(size: tuple[int, int], poses: torch.Tensor | None = None, K: to
     depth[:, h // 4 : 3 * h // 4, w // 4 : 3 * w // 4] = 1.5
     K = crop_K(len(poses)) * torch.tensor([[w / 320], [h / 240], [1.0]]) if K is None else K
     return render_surface(depth, poses, K)
+
+
+# ---- shared fixtures ----
+
+
+@pytest.fixture(scope="session")
+def panda() -> RobotModel:
+    return RobotModel("panda")
+
+
+@pytest.fixture(scope="session")
+def frames(tiny_dream):
+    """The frames of :func:`tiny_dream`."""
+    from monose3.data.datasets import open_dataset
+
+    return open_dataset(tiny_dream, "panda")
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """A randomly initialised small denoiser (zero head: every update is the identity) with a
+    short reverse process, so a frame costs a few small network calls; images of 160x120."""
+    from monose3.method.estimator import PoseEstimator
+
+    config = with_section(
+        get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=(160, 120)
+    )
+    config = with_section(config, "inference", ddim_steps=1, direct_steps=1)
+    estimator = PoseEstimator(build_denoiser(config.network), config)
+    yield estimator
+    estimator.close()
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory, tiny):
+    """:func:`tiny`'s weights as a checkpoint file."""
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    save_checkpoint(path, {"model": tiny.model.state_dict(), "config": tiny.config.to_dict(), "robot": "panda"})
+    return path

@@ -30,11 +30,8 @@ from monose3.geometry.averaging import (
 )
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import matrix_to_rotvec, rotation_angle, rotvec_to_matrix
-from monose3.method.config import get_preset, with_section
-from monose3.method.designs import build_denoiser
 from monose3.method.estimator import Estimate, PoseEstimator
 from monose3.robot.jobs import RenderJob
-from monose3.training.checkpoints import save_checkpoint
 
 SIZE = (160, 120)
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
@@ -156,25 +153,6 @@ def write_plain(folder: Path, scene, models) -> Path:
     cam = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "width": SIZE[0], "height": SIZE[1]}
     (folder / "camera.json").write_text(json.dumps(cam))
     return folder
-
-
-@pytest.fixture(scope="module")
-def tiny():
-    """A randomly initialised small denoiser (zero head: every update is the identity) with a
-    short reverse process, so a frame costs a few small network calls."""
-    config = with_section(get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=SIZE)
-    config = with_section(config, "inference", ddim_steps=1, direct_steps=1)
-    torch_model = build_denoiser(config.network)
-    estimator = PoseEstimator(torch_model, config)
-    yield estimator
-    estimator.close()
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory, tiny):
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    save_checkpoint(path, {"model": tiny.model.state_dict(), "config": tiny.config.to_dict(), "robot": "panda"})
-    return path
 
 
 class ScriptedEstimator(PoseEstimator):

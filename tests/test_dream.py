@@ -21,11 +21,6 @@ from monose3.robot import RobotModel
 K_REAL = np.array([[615.52, 0.0, 328.26], [0.0, 615.22, 251.79], [0.0, 0.0, 1.0]])
 
 
-@pytest.fixture(scope="module")
-def panda() -> RobotModel:
-    return RobotModel("panda")
-
-
 def camera_pose(rng: np.random.Generator, model: RobotModel, joints: np.ndarray) -> np.ndarray:
     """A camera 1-2 m from the robot looking at it (plain numpy, independent of the generator)."""
     centre = model.centroid(model.surface_points(joints[None])[0])

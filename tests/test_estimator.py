@@ -5,7 +5,6 @@ import pytest
 import torch
 from conftest import TINY_NET, project_np
 
-from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.config import get_preset
@@ -44,11 +43,6 @@ def estimator():
 def zero_estimator():
     """The tiny model with a zero last layer: the network predicts H_0 = H_t; never modified."""
     yield from _unchanged(make_estimator(torch.nn.init.zeros_))
-
-
-@pytest.fixture(scope="module")
-def frames(tiny_dream):
-    return open_dataset(tiny_dream, "panda")
 
 
 def _inputs(frames, n):

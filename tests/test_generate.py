@@ -24,11 +24,6 @@ SIZE = (320, 240)
 
 
 @pytest.fixture(scope="module")
-def panda() -> RobotModel:
-    return RobotModel("panda")
-
-
-@pytest.fixture(scope="module")
 def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("gen") / "w0"
     generate_dataset(out, 6, seed=7, workers=0, size=SIZE, progress=False)

@@ -8,14 +8,8 @@ import yaml
 from monose3.data.inputs import check_image_camera, load_camera, load_image, load_joints, load_pose
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import Intrinsics, scale_camera
-from monose3.robot import RobotModel
 
 Q = [0.1, -0.5, 0.2, -2.0, 0.3, 1.5, 0.7]
-
-
-@pytest.fixture(scope="module")
-def panda():
-    return RobotModel("panda")
 
 
 def write(path, obj):

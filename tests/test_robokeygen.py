@@ -19,11 +19,6 @@ K_D415 = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 180.0], [0.0, 0.0, 1.0]])
 LINKS = [f"panda_link{i}" for i in range(8)] + ["panda_hand", "panda_leftfinger", "panda_rightfinger"]
 
 
-@pytest.fixture(scope="module")
-def panda() -> RobotModel:
-    return RobotModel("panda")
-
-
 def random_pose(rng: np.random.Generator) -> np.ndarray:
     """Camera-from-base: base 1-2 m in front of the camera, arbitrary orientation."""
     a = rng.normal(size=(3, 3))

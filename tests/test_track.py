@@ -17,13 +17,10 @@ from monose3.data.dream_writer import write_frame
 from monose3.data.frame import Frame
 from monose3.data.video import read_video, video_frames
 from monose3.errors import Monose3Error
-from monose3.method.config import get_preset, with_section
-from monose3.method.designs import build_denoiser
-from monose3.method.estimator import Estimate, PoseEstimator
+from monose3.method.estimator import Estimate
 from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 from monose3.report.overlays import save_animation
 from monose3.robot.jobs import RenderJob
-from monose3.training.checkpoints import save_checkpoint
 
 SIZE = (160, 120)
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])
@@ -42,22 +39,6 @@ def sequence(models, renderers):
     joints = np.stack([start + 0.05 * i for i in range(N)])
     images = [renderers["panda"].render_jobs([RenderJob(q, POSE, K, SIZE)])[0][0] for q in joints]
     return joints, images
-
-
-@pytest.fixture(scope="module")
-def tiny():
-    config = with_section(get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=SIZE)
-    config = with_section(config, "inference", ddim_steps=1, direct_steps=1)
-    estimator = PoseEstimator(build_denoiser(config.network), config)
-    yield estimator
-    estimator.close()
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory, tiny):
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    save_checkpoint(path, {"model": tiny.model.state_dict(), "config": tiny.config.to_dict(), "robot": "panda"})
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,6 @@ import torch
 from conftest import TINY_NET
 
 from monose3.apps.cli import main
-from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error
 from monose3.method.config import DESIGNS, get_preset, with_section
 from monose3.method.designs import build_denoiser
@@ -32,11 +31,6 @@ def tiny_config(**train):
     config = get_preset("cpu", network=TINY_NET)
     defaults = dict(batch_size=4, num_workers=0, warmup_steps=1, log_every=1, checkpoint_every=3, max_steps=6)
     return with_section(config, "train", **{**defaults, **train})
-
-
-@pytest.fixture(scope="module")
-def frames(tiny_dream):
-    return open_dataset(tiny_dream, "panda")
 
 
 @pytest.mark.parametrize("synthetic", [False, True])
