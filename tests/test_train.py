@@ -193,6 +193,10 @@ def kuka_shards(tmp_path_factory):
         (["--crop-jitter", "0.3"], "--crop-jitter must lie in [0, 0.14]"),
         (["--field-stride", "4"], "--field-stride sets the flow-solve design's field"),
         (["--flow-weight", "-1", "--design", "cost-volume"], "--flow-weight must be 0 or more"),
+        (
+            ["--backbone", "efficientnet-lite0"],
+            "--backbone efficientnet-lite0 needs --design cost-volume or flow-solve",
+        ),
     ],
 )
 def test_cli_bad_input_is_one_line_before_any_work(tmp_path, capsys, kuka_shards, extra, words):
@@ -243,13 +247,16 @@ def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("design", "rotation_output"),
-    [(d, "6d") for d in DESIGNS] + [("concat-grid", "so3")],
+    ("design", "rotation_output", "backbone"),
+    [(d, "6d", "resnet18") for d in DESIGNS]
+    + [("concat-grid", "so3", "resnet18")]
+    + [("flow-solve", "6d", "efficientnet-lite0")],
 )
-def test_every_design_trains_and_estimates(frames, design, rotation_output):
+def test_every_design_trains_and_estimates(frames, design, rotation_output, backbone):
     from monose3.method.estimator import PoseEstimator
 
     config = with_section(tiny_config(rot_weight=3.0), "network", design=design, rotation_output=rotation_output)
+    config = with_section(config, "network", backbone=backbone)
     _, batch = BatchMaker(config, Sources(frames), torch.device("cpu"), 0, 0, 1).batch(0)
     model = build_denoiser(config.network)
     loss, parts = train_step(model, torch.optim.Adam(model.parameters(), lr=1e-3), batch, config, 1e-3)

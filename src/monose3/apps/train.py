@@ -16,9 +16,11 @@ from monose3.data import validation as v
 from monose3.data.datasets import load_datasets
 from monose3.errors import Monose3Error
 from monose3.method.config import (
+    BACKBONES,
     DESIGNS,
     FIELD_STRIDES,
     MAX_CROP_JITTER,
+    PRETRAINED_TRUNK_DESIGNS,
     ROTATION_OUTPUTS,
     TRAIN_PRESET,
     Config,
@@ -57,6 +59,12 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "--design",
         choices=list(DESIGNS),
         help="denoiser architecture (default: the preset's, concat = the paper's; see benchmarks/denoiser_designs.py)",
+    )
+    p.add_argument(
+        "--backbone",
+        choices=BACKBONES,
+        help="the denoiser's trunk: a ResNet from scratch, or ImageNet-pretrained EfficientNet-Lite0 (cost-volume and "
+        "flow-solve) [the preset's]",
     )
     p.add_argument(
         "--rotation-output",
@@ -140,6 +148,9 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
             raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")
     if args.field_stride is not None and args.design != "flow-solve":
         raise Monose3Error("--field-stride sets the flow-solve design's field; pass --design flow-solve")
+    design = args.design or get_preset(args.preset).network.design
+    if args.backbone == BACKBONES[2] and design not in PRETRAINED_TRUNK_DESIGNS:
+        raise Monose3Error(f"--backbone {args.backbone} needs --design {' or '.join(PRETRAINED_TRUNK_DESIGNS)}")
     if args.design == "flow-solve" and args.rotation_output not in (None, "6d"):
         raise Monose3Error("--design flow-solve solves its rotation from the field; drop --rotation-output")
     for d in args.data:
@@ -171,7 +182,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
     config = with_section(config, "train", **{k: v for k, v in train_over.items() if v is not None})
     if args.design:
         config = with_section(config, "network", design=args.design)
-    for name in ("rotation_output", "field_stride"):
+    for name in ("backbone", "rotation_output", "field_stride"):
         if getattr(args, name, None):
             config = with_section(config, "network", **{name: getattr(args, name)})
     diff_over = {"noise": args.noise, "gamma": args.gamma}

@@ -36,6 +36,10 @@ class DiffusionConfig:
 # rotation output) lost and were removed after round 4; DESIGNS.md names the commit that has them.
 DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve")  # classes: monose3.method.designs
 FIELD_STRIDES = (4, 8)
+# The denoiser's trunks: ResNets from scratch, or EfficientNet-Lite0 with its ImageNet weights
+# (monose3.perception.backbone), which only the designs that compare through cost volumes take.
+BACKBONES = ("resnet18", "resnet34", "efficientnet-lite0")
+PRETRAINED_TRUNK_DESIGNS = ("cost-volume", "flow-solve")
 # The crop leaves the robot a margin of (1 - 1 / 1.4) / 2 = 14 % of its size on each side
 # (RoboPose's 1.4); moved by more, the crop cuts the robot off.
 MAX_CROP_JITTER = 0.14

@@ -187,7 +187,12 @@ def _init_weights(model: Denoiser, init: str | Path, config: Config) -> tuple[in
 
 
 # The train flags that set each NetworkConfig field (the others come with --preset).
-_NETWORK_FLAGS = {"design": "--design", "rotation_output": "--rotation-output", "field_stride": "--field-stride"}
+_NETWORK_FLAGS = {
+    "design": "--design",
+    "backbone": "--backbone",
+    "rotation_output": "--rotation-output",
+    "field_stride": "--field-stride",
+}
 
 
 def _flags_of(saved: Config, config: Config) -> str:

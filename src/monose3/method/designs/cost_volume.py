@@ -11,7 +11,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from monose3.method.config import FIELD_STRIDES, NetworkConfig
+from monose3.method.config import BACKBONES, FIELD_STRIDES, NetworkConfig
 from monose3.method.denoiser import Denoiser, DenoiserOutput
 from monose3.method.designs.blocks import (
     GridHead,
@@ -34,7 +34,7 @@ FINEST_RADIUS = 3  # flow-solve at field_stride 4: its stride-4 cost volume reac
 INITIAL_LOG_PRIOR = torch.tensor([7.0, 7.0, 7.5, 11.0, 11.0, 9.0])
 PRIOR_GAIN = 10.0  # the prior's log moves 10x faster than its weights, so Adam can move it by ~5 in 2000 steps
 INITIAL_FIELD_SCALE = 0.02  # flow-solve: the field's Laplace scale at init (render widths, ~ t 1-10's moves)
-PRETRAINED = "efficientnet-lite0"  # the ImageNet-pretrained trunk (monose3.perception.backbone)
+PRETRAINED = BACKBONES[2]  # the ImageNet-pretrained trunk (monose3.perception.backbone)
 
 
 def comparison_trunk(backbone: str) -> tuple[nn.Sequential, int, nn.Module, Callable]:
