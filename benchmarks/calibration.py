@@ -286,7 +286,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="scene seed (camera, background, configurations)")
     p.add_argument("--chains", type=int, default=1, help="chains per frame (>1 also rejects unreliable frames)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or auto")
-    p.add_argument("--plot", default=str(ROOT / "docs" / "calibration.png"), help="output figure ('' for none)")
+    p.add_argument(
+        "--plot", default=str(ROOT / "docs" / "results" / "calibration.png"), help="output figure ('' for none)"
+    )
     p.add_argument("--keep", help="write the static set here (kept) instead of a temporary folder")
     args = p.parse_args(argv)
     sizes = sorted({n for n in args.sizes if 1 <= n <= args.frames})

@@ -404,7 +404,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-false-alarm", type=float, default=MAX_FALSE_ALARM, help="for the recommendation")
     p.add_argument("--device", default="cpu", help="cpu, cuda or auto")
-    p.add_argument("--plot", default=str(ROOT / "docs" / "uncertainty.png"), help="output figure ('' for none)")
+    p.add_argument(
+        "--plot", default=str(ROOT / "docs" / "results" / "uncertainty.png"), help="output figure ('' for none)"
+    )
     p.add_argument("--json", help="also write the per-frame numbers here")
     p.add_argument(
         "--prior", type=float, nargs=2, metavar=("M", "DEG"), help="start from ground truth moved by this much per axis"

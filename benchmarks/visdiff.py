@@ -332,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=10, help="noisy poses per scene and t")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--timesteps", type=int, nargs="+", help=f"default {TIMESTEPS}")
-    p.add_argument("--plot", default=str(ROOT / "docs" / "visdiff.png"), help="output figure ('' for none)")
+    p.add_argument("--plot", default=str(ROOT / "docs" / "results" / "visdiff.png"), help="output figure ('' for none)")
     args = p.parse_args(argv)
     tick = time.perf_counter()
     out = run(args.scenes, args.reps, args.seed, args.timesteps)
