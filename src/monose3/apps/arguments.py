@@ -8,8 +8,11 @@ are inside ``run_<name>``), so ``--help`` and a bad input answer in well under a
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from monose3.data import validation as v
+from monose3.errors import Monose3Error
+from monose3.robot import RobotModel
 
 CHECKPOINT_HELP = "model checkpoint file (.pt; default: the bundled Panda model)"
 ROBOT_HELP = "robot the checkpoint must be for: panda, kuka or a robot file robot.json (checked before loading)"
@@ -28,8 +31,6 @@ def robot_model(name: str | None):
     """The robot to check joints against before the model loads (None: known only after loading)."""
     if name is None:
         return None
-    from monose3.robot import RobotModel
-
     return RobotModel(name)
 
 
@@ -59,9 +60,5 @@ def add_model_arguments(p: argparse.ArgumentParser, chains: int, chains_help: st
 
 def check_parser_file(path: str | None) -> None:
     """A ``--parser`` that does not exist is refused before any model loads."""
-    from pathlib import Path
-
-    from monose3.errors import Monose3Error
-
     if path is not None and not Path(path).exists():
         raise Monose3Error(f"robot parser weights not found: {path}; pass an existing file or omit --parser")

@@ -63,13 +63,12 @@ def check_estimate(args: argparse.Namespace) -> SimpleNamespace:
 
 def run_estimate(args: argparse.Namespace) -> int:
     from monose3.api import estimate_pose, format_pose, load_estimator, overlay_image, write_pose_files
-    from monose3.data import validation
     from monose3.report.overlays import save_image
 
     inputs = getattr(args, "checked_inputs", None) or check_estimate(args)  # all of it before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, parser=args.parser)
     try:
-        joints = inputs.joints if inputs.joints is not None else validation.check_joints(args.joints, estimator.robot)
+        joints = inputs.joints if inputs.joints is not None else v.check_joints(args.joints, estimator.robot)
         result = estimate_pose(
             estimator, inputs.image, joints, inputs.K, chains=inputs.chains, sampler=args.sampler, prior=inputs.prior
         )

@@ -17,6 +17,7 @@ from monose3.apps.arguments import (
 from monose3.data import validation as v
 from monose3.data.scenes.profiles import PROFILES
 from monose3.errors import Monose3Error
+from monose3.robot import get_spec
 from monose3.robot.jobs import RENDERERS
 
 
@@ -48,8 +49,6 @@ def check_generate(args: argparse.Namespace) -> None:
     if bool(args.urdf) != bool(args.keypoints):
         raise Monose3Error("a custom robot needs both --urdf and --keypoints")
     if not args.urdf:
-        from monose3.robot import get_spec
-
         get_spec(args.robot)
     if args.backgrounds is not None:
         v.check_input_dir(args.backgrounds, "--backgrounds")

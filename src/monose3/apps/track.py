@@ -56,6 +56,7 @@ from monose3.data.frames import (
     load_joints_dir,
     skipped_annotations,
 )
+from monose3.data.inputs import load_camera
 from monose3.data.video import video_frames
 from monose3.errors import Monose3Error
 from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
@@ -133,8 +134,6 @@ def check_track(args: argparse.Namespace) -> SimpleNamespace:
             frames = load_frames(args.frames, robot_model(robot))
             frames = frames[: args.limit] if args.limit is not None else frames
     else:
-        from monose3.data.inputs import load_camera
-
         camera = load_camera(args.camera)
         v.check_K(camera.K, camera.size, args.camera)
         if robot is not None:

@@ -14,6 +14,8 @@ from monose3.apps.arguments import (
 )
 from monose3.data import validation as v
 from monose3.data.datasets import load_datasets
+from monose3.data.inputs import list_backgrounds
+from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.method.config import (
     BACKBONES,
@@ -27,7 +29,7 @@ from monose3.method.config import (
     get_preset,
     with_section,
 )
-from monose3.robot import robot_reference
+from monose3.robot import get_spec, robot_reference
 
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
@@ -101,9 +103,6 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
 
 def check_train(args: argparse.Namespace) -> SimpleNamespace:
     """Every refusal that needs no model, before anything is built or written; returns the frames."""
-    from monose3.data.scenes.profiles import get_profile
-    from monose3.robot import get_spec
-
     if args.minutes is not None and not args.minutes > 0:
         raise Monose3Error(f"--minutes must be > 0, got {args.minutes}")
     if args.shard_minutes <= 0:
@@ -156,8 +155,6 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     for d in args.data:
         v.check_input_dir(d, "--data")
     if args.backgrounds:
-        from monose3.data.inputs import list_backgrounds
-
         list_backgrounds(args.backgrounds)
     return SimpleNamespace(frames=load_datasets(args.data, args.robot) if args.data else [])
 

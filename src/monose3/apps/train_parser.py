@@ -9,7 +9,9 @@ from monose3.apps.arguments import (
     check_non_negative,
 )
 from monose3.data import validation as v
+from monose3.data.inputs import list_backgrounds
 from monose3.errors import Monose3Error
+from monose3.perception.config import PARSER_PRESETS
 
 
 def add_train_parser_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,9 +29,6 @@ def add_train_parser_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def check_train_parser(args: argparse.Namespace) -> None:
-    from monose3.data.inputs import list_backgrounds
-    from monose3.perception.config import PARSER_PRESETS
-
     if args.preset not in PARSER_PRESETS:
         raise Monose3Error(f"unknown parser preset {args.preset!r}; choose one of {sorted(PARSER_PRESETS)}")
     if args.minutes is None and args.steps is None:
@@ -52,7 +51,6 @@ def run_train_parser(args: argparse.Namespace) -> int:
 
     import torch
 
-    from monose3.perception.config import PARSER_PRESETS
     from monose3.training.parser_loop import train_parser
 
     if args.threads:
