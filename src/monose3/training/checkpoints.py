@@ -79,7 +79,7 @@ def load_model(
             f"checkpoint {Path(path).name} holds a {net.design!r} denoiser with the {net.rotation_output!r} output, "
             "which monose3 no longer builds (removed after the design study, docs/DESIGNS.md); train a new model"
         )
-    model = build_denoiser(net)
+    model = build_denoiser(net, pretrained=False)  # the checkpoint's weights replace them
     weights = {k: v.float() for k, v in state["model"].items()}
     model.load_state_dict(weights)
     return model.to(device).eval(), config

@@ -16,8 +16,9 @@ DESIGN_CLASSES: dict[str, type[Denoiser]] = {
 FIELD_DESIGNS = tuple(name for name, cls in DESIGN_CLASSES.items() if cls.predicts_field)
 
 
-def build_denoiser(config: NetworkConfig) -> Denoiser:
-    """The denoiser ``config.design`` names (one of :data:`~monose3.method.config.DESIGNS`)."""
+def build_denoiser(config: NetworkConfig, pretrained: bool = True) -> Denoiser:
+    """The denoiser ``config.design`` names (one of :data:`~monose3.method.config.DESIGNS`);
+    ``pretrained``: a pretrained trunk starts from its ImageNet weights (off to load a checkpoint)."""
     if config.design not in DESIGN_CLASSES:
         raise ValueError(f"unknown denoiser design {config.design!r}; choose one of {DESIGNS}")
-    return DESIGN_CLASSES[config.design](config)
+    return DESIGN_CLASSES[config.design](config, pretrained=pretrained)

@@ -17,7 +17,7 @@ class Concat(Denoiser):
 
     coordinates = False  # whether CoordConv channels join the input
 
-    def __init__(self, config: NetworkConfig):
+    def __init__(self, config: NetworkConfig, pretrained: bool = True):  # noqa: ARG002 - a ResNet from scratch
         super().__init__(config)
         net = resnet(config.backbone)
         channels = 6 + 2 * self.coordinates + config.time_embedding_dim

@@ -37,14 +37,15 @@ INITIAL_FIELD_SCALE = 0.02  # flow-solve: the field's Laplace scale at init (ren
 PRETRAINED = BACKBONES[2]  # the ImageNet-pretrained trunk (monose3.perception.backbone)
 
 
-def comparison_trunk(backbone: str) -> tuple[nn.Sequential, int, nn.Module, Callable]:
+def comparison_trunk(backbone: str, pretrained: bool = True) -> tuple[nn.Sequential, int, nn.Module, Callable]:
     """The shared trunk render and crop both go through: ``fine`` (image to stride 8, whose
     first ``split`` modules reach stride 4), ``coarse`` (stride 8 to 16) and the input scaling.
-    A ResNet's layers 1-3 from scratch, or the ImageNet-pretrained EfficientNet-Lite0's stages 1-5."""
+    A ResNet's layers 1-3 from scratch, or EfficientNet-Lite0's stages 1-5 with their ImageNet
+    weights (``pretrained``; off where a checkpoint's weights replace them at once)."""
     if backbone == PRETRAINED:
-        from monose3.perception.backbone import pretrained_lite0
+        from monose3.perception.backbone import EfficientNetLite0, pretrained_lite0
 
-        to_4, to_8, to_16 = pretrained_lite0().pyramid()
+        to_4, to_8, to_16 = (pretrained_lite0() if pretrained else EfficientNetLite0()).pyramid()
         return nn.Sequential(to_4, to_8), 1, to_16, nn.Identity()  # its stem scales the input
     net = resnet(backbone)
     return nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1, net.layer2), 5, net.layer3, to_net_range
@@ -60,9 +61,9 @@ class CostVolumeNet(nn.Module):
     shift, a rotation and a scale change of the robot between render and crop are all read
     as the displacement field that the cost volume encodes, where each cell is (the grid)."""
 
-    def __init__(self, config: NetworkConfig, width: int = 128):
+    def __init__(self, config: NetworkConfig, width: int = 128, pretrained: bool = True):
         super().__init__()
-        self.fine, self.split, self.coarse, self.scale_input = comparison_trunk(config.backbone)
+        self.fine, self.split, self.coarse, self.scale_input = comparison_trunk(config.backbone, pretrained)
         r_fine, r_coarse = COST_RADII
         self.fine_cost = conv_block((2 * r_fine + 1) ** 2 + 2 + config.time_embedding_dim, width)
         self.down = conv_block(width, width, stride=2)
@@ -106,8 +107,8 @@ class FlowSolveNet(CostVolumeNet):
     head: the pose comes from the field (:func:`monose3.method.flow_pose.pose_from_field`),
     so the network can only move the pose by saying where the render's parts are in the crop."""
 
-    def __init__(self, config: NetworkConfig, width: int = 128):
-        super().__init__(config, width)
+    def __init__(self, config: NetworkConfig, width: int = 128, pretrained: bool = True):
+        super().__init__(config, width, pretrained)
         del self.head, self.flow
         if config.field_stride not in FIELD_STRIDES:
             raise ValueError(f"field_stride must be one of {FIELD_STRIDES}, got {config.field_stride}")
@@ -150,9 +151,9 @@ class CostVolume(Denoiser):
 
     predicts_field = True
 
-    def __init__(self, config: NetworkConfig):
+    def __init__(self, config: NetworkConfig, pretrained: bool = True):
         super().__init__(config)
-        self.net = CostVolumeNet(config)
+        self.net = CostVolumeNet(config, pretrained=pretrained)
 
     def compare(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface) -> DenoiserOutput:
         return DenoiserOutput(*self.net(render, crop, emb))
@@ -164,9 +165,9 @@ class FlowSolve(Denoiser):
     predicts_field = True
     rotation_outputs = ("6d",)  # the raw outputs are those of a solved pose, never regressed
 
-    def __init__(self, config: NetworkConfig):
+    def __init__(self, config: NetworkConfig, pretrained: bool = True):
         super().__init__(config)
-        self.net = FlowSolveNet(config)
+        self.net = FlowSolveNet(config, pretrained=pretrained)
 
     def compare(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface) -> DenoiserOutput:
         """The raw outputs of the update to the pose the field implies, and the field with its
