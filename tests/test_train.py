@@ -183,7 +183,7 @@ def kuka_shards(tmp_path_factory):
         (["--minutes", "-3"], "--minutes must be > 0"),
         (["--init", "nowhere"], "not found"),
         (["--init", "KUKA"], "holds another network: pass --robot kuka or another --init"),
-        (["--init", "BUNDLED"], "pass --design flow-solve or another --init"),
+        (["--init", "BUNDLED"], "pass --backbone efficientnet-lite0 --design flow-solve or another --init"),
         (["--backgrounds", "EMPTY"], "no images"),
         (["--out", "FILE"], "is a file"),
         (["--t-max", "0"], "--t-max must be at least 1"),
