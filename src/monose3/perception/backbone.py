@@ -65,15 +65,20 @@ class MBConv(nn.Module):
         return x + y if self.residual else y
 
 
-class _Stem(nn.Module):
+def _run_stem(conv: nn.Module, bn: nn.Module, image: torch.Tensor) -> torch.Tensor:
     """The stem convolution, batch norm and ReLU6, for images in [0, 1] (scaled to [-1, 1])."""
+    return F.relu6(bn(conv(image * 2.0 - 1.0)))
+
+
+class _Stem(nn.Module):
+    """:func:`_run_stem` as a module of its own (the first piece of :meth:`EfficientNetLite0.pyramid`)."""
 
     def __init__(self, conv: nn.Module, bn: nn.Module):
         super().__init__()
         self.conv, self.bn = conv, bn
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return F.relu6(self.bn(self.conv(image * 2.0 - 1.0)))
+        return _run_stem(self.conv, self.bn, image)
 
 
 class EfficientNetLite0(nn.Module):
@@ -96,7 +101,7 @@ class EfficientNetLite0(nn.Module):
         self._fc = nn.Linear(1280, 1000)
 
     def _stem(self, image: torch.Tensor) -> torch.Tensor:
-        return F.relu6(self._bn0(self._conv_stem(image * 2.0 - 1.0)))
+        return _run_stem(self._conv_stem, self._bn0, image)
 
     def features(self, image: torch.Tensor) -> list[torch.Tensor]:
         """Feature maps at strides 2, 4, 8, 16 and 32 (:data:`FEATURE_CHANNELS`) of ``[B, 3, H, W]`` in [0, 1]."""
