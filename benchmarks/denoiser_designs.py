@@ -48,7 +48,15 @@ import numpy as np
 import torch
 
 from monose3.errors import Monose3Error, run_reporting_errors
-from monose3.method.config import DESIGNS, ROTATION_OUTPUTS, Config, get_preset, with_section
+from monose3.method.config import (
+    BACKBONES,
+    DESIGNS,
+    PRETRAINED_TRUNK_DESIGNS,
+    ROTATION_OUTPUTS,
+    Config,
+    get_preset,
+    with_section,
+)
 from monose3.method.denoiser import Denoiser, DenoiserOutput
 from monose3.method.designs import FIELD_DESIGNS, build_denoiser
 from monose3.method.flow_pose import field_targets
@@ -137,13 +145,15 @@ def load_pool(path: Path, data_dir: str | None, config: Config, num: int, seed: 
     return {k: torch.from_numpy(v) for k, v in pool.items()}
 
 
-def batch_of(pool: Pool, idx: torch.Tensor, config: Config) -> dict[str, torch.Tensor]:
-    """Float batch of pool rows ``idx`` plus the render's visible surface (flow_pose.render_surface)."""
+def batch_of(pool: Pool, idx: torch.Tensor, config: Config, with_surface: bool = True) -> dict[str, torch.Tensor]:
+    """Float batch of pool rows ``idx``, with the render's visible surface (flow_pose.render_surface)
+    unless ``with_surface`` is off (a training step finds it itself)."""
     batch = {k: v[idx] for k, v in pool.items()}
     for key in ("render", "crop"):
         batch[key] = batch[key].float() / 255.0
     batch["depth"] = batch["depth"].float()
-    batch["surface"] = batch_surface(batch)
+    if with_surface:
+        batch["surface"] = batch_surface(batch)
     return batch
 
 
@@ -268,7 +278,7 @@ def train_design(design: str, config: Config, train: Pool, held: Pool, args: arg
     curve, tick, train_s, window = [], time.perf_counter(), 0.0, []
     for step in range(steps):
         model.train()
-        batch = batch_of(train, order[step * bs : (step + 1) * bs], config)
+        batch = batch_of(train, order[step * bs : (step + 1) * bs], config, with_surface=False)
         _, parts = train_step(model, optimizer, batch, config, learning_rate(step, config))
         window.append([parts[k] for k in PARTS])
         if step + 1 in eval_at:
@@ -486,6 +496,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--backbone",
+        choices=BACKBONES,
         help="NetworkConfig.backbone: resnet18/34 from scratch or efficientnet-lite0 "
         "(ImageNet-pretrained; cost-volume, flow-solve) [the preset's]",
     )
@@ -515,6 +526,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.flow_weight and set(args.designs) - set(FIELD_DESIGNS):
         raise Monose3Error(f"--flow-weight needs --designs among {FIELD_DESIGNS}, the designs that predict a field")
+    if args.backbone == BACKBONES[2] and set(args.designs) - set(PRETRAINED_TRUNK_DESIGNS):
+        raise Monose3Error(f"--backbone {args.backbone} needs --designs among {PRETRAINED_TRUNK_DESIGNS}")
     config = get_preset(args.preset)
     pools = Path(args.pool_dir) / args.preset
     if args.sanity != "none":

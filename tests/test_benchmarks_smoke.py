@@ -231,3 +231,17 @@ def test_accuracy_small(tmp_path: Path, tiny_dream: Path, capsys, keep_threads: 
         assert line in out
     data = json.loads((tmp_path / "a.json").read_text())[tiny_dream.name]
     assert set(data["stages"]) == set(acc.STAGES) and 0 <= data["refinement"]["closer_share"] <= 1
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--designs", "concat", "--backbone", "efficientnet-lite0"], "--backbone efficientnet-lite0 needs --designs"),
+        (["--designs", "concat", "--flow-weight", "1"], "--flow-weight needs --designs among"),
+    ],
+)
+def test_denoiser_designs_refuses_a_design_its_options_do_not_fit(tmp_path: Path, args, words) -> None:
+    from monose3.errors import Monose3Error
+
+    with pytest.raises(Monose3Error, match=words):
+        load("denoiser_designs").main([*args, "--out", str(tmp_path)])
