@@ -3,7 +3,7 @@
 Rows (one per stage, each adding to the one above): the paper's reverse diffusion alone
 (RevDiff, 5 DDIM + 5 direct steps); the robot parser with PnP (hypotheses scored by silhouette
 IoU, no sphere search, no refinement); + the coarse search over the sphere; + the silhouette
-and keypoint refinement (the default). Per row and set: AUC of ADD (0-100 mm), median ADD, CPU
+and keypoint refinement; + its edge stage (the default). Per row and set: AUC of ADD (0-100 mm), median ADD, CPU
 seconds per image (with the stages' split for the default). Then:
 
 * refinement from the true pose moved by ``--start-deg`` / ``--start-cm`` (a random axis and
@@ -37,10 +37,17 @@ from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
 from monose3.geometry.rotations import axis_angle_to_matrix
-from monose3.perception.fitting import RELIABLE_IOU, fit_pose, track_pose
+from monose3.perception.fitting import (
+    COARSE_ITERATIONS,
+    EDGE_ITERATIONS,
+    REFINE_ITERATIONS,
+    RELIABLE_IOU,
+    fit_pose,
+    track_pose,
+)
 from monose3.report.metrics import add_per_frame, auc
 
-STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ refinement (default)")
+STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ mask refinement", "+ edges (default)")
 
 
 def frame_add(estimator, frame, pose: np.ndarray) -> float:
@@ -57,9 +64,10 @@ def run_stage(estimator, frame, image, stage: str) -> tuple[np.ndarray, dict, fl
         est = estimator.estimate([image], frame.K[None], frame.joints[None], sampler="revdiff")
         pose = est.poses[0] if est.in_view[0] else np.full((4, 4), np.nan)
         return pose, {"total": time.perf_counter() - tick}, None
-    options = {STAGES[1]: (False, False), STAGES[2]: (True, False), STAGES[3]: (True, True)}[stage]
+    options = {STAGES[1]: (False, False, False), STAGES[2]: (True, False, False), STAGES[3]: (True, True, False),
+               STAGES[4]: (True, True, True)}[stage]  # fmt: skip
     args = (estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
-    fit = fit_pose(*args, sphere=options[0], refine=options[1])
+    fit = fit_pose(*args, sphere=options[0], refine=options[1], edges=options[2])
     return fit.pose, {**fit.timings, "total": sum(fit.timings.values())}, fit.iou if fit.found else 0.0
 
 
@@ -163,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--parser", help="robot parser weights (default: bundled)")
     p.add_argument("--start-deg", type=float, default=5.0)
     p.add_argument("--start-cm", type=float, default=3.0)
-    p.add_argument("--refine-iterations", type=int, nargs=2, default=[12, 6], metavar=("COARSE", "FINE"))
+    iterations = [COARSE_ITERATIONS, REFINE_ITERATIONS, EDGE_ITERATIONS]
+    p.add_argument("--refine-iterations", type=int, nargs=3, default=iterations, metavar=("COARSE", "FINE", "EDGE"))
     p.add_argument("--bad-mm", type=float, default=30.0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json")

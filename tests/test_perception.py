@@ -13,6 +13,7 @@ from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
+from monose3.perception.edges import edge_terms, strongest_edges
 from monose3.perception.fitting import fit_pose, refine_coarse_to_fine, track_pose
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.silhouette import Outline
@@ -94,16 +95,46 @@ def test_outline_nearest_matches_brute_force():
     assert np.allclose(np.linalg.norm(found - np.round(uv), axis=-1), brute, atol=0.5)
 
 
+# ---- image edges ----------------------------------------------------------------------------------
+
+
+def test_strongest_edges_finds_a_blurred_step_to_a_tenth_of_a_pixel():
+    x = np.arange(64, dtype=np.float32)
+    step_at = 30.3  # the grey level changes between pixel centres 30 and 31, a third of the way
+    row = 0.2 + 0.6 / (1 + np.exp(-(x - step_at) / 0.6))
+    image = np.repeat(np.repeat(row[None, :, None], 16, 0), 3, 2)
+    pixels = np.array([[28.6, 8.0], [31.9, 8.0]])  # the search starts 1.7 and 1.6 pixels away
+    offsets, strength = strongest_edges(image, pixels, np.array([[1.0, 0.0], [1.0, 0.0]]))
+    assert np.allclose(pixels[:, 0] + offsets, step_at, atol=0.1) and (strength > 0.3).all()
+
+
+def test_a_flat_image_has_no_edges_to_pull_to():
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 10:30] = True
+    depth = np.where(mask, 1.0, 0.0)
+    K = np.array([[50.0, 0, 20], [0, 50.0, 20], [0, 0, 1]])
+    image = np.full((40, 40, 3), 0.5, np.float32)
+    _, _, weights = edge_terms(image, mask, depth, np.eye(4), K, 100.0, np.random.default_rng(0))
+    assert len(weights) and not weights.any()
+    image[mask] = 0.9
+    _, goals, weights = edge_terms(image, mask, depth, np.eye(4), K, 100.0, np.random.default_rng(0))
+    assert weights.sum() > 50  # a contrasted square: its outline is where the image's edges are
+    assert np.abs(goals - np.clip(goals, 10, 29)).max() < 0.1  # the centres of its outline pixels
+
+
 # ---- the fit ---------------------------------------------------------------------------------------
 
 
 def _perfect_view(models, renderers, joints, pose, K, size=(320, 240)) -> ViewEvidence:
-    """What a perfect parser would report: the rendered mask and the projected keypoints."""
-    mask = renderers["panda"].render(joints[None], torch.from_numpy(pose)[None], torch.from_numpy(K)[None], size).mask
+    """What a perfect parser would report: the rendered mask and the projected keypoints, with
+    the render over a grey background as the view's pixels."""
+    rendered = renderers["panda"].render(joints[None], torch.from_numpy(pose)[None], torch.from_numpy(K)[None], size)
     cam = models["panda"].keypoints(joints[None], pose[None])[0]
     uv = cam[:, :2] / cam[:, 2:] * np.diag(K)[:2] + K[:2, 2]
     box = np.array([0.0, 0.0, *size])
-    return ViewEvidence(mask[0].float(), uv, np.ones(len(uv)), K, box)
+    mask = rendered.mask[0]
+    image = torch.where(mask[None], rendered.rgb[0], 0.4).permute(1, 2, 0).numpy().astype(np.float32)
+    return ViewEvidence(mask.float(), uv, np.ones(len(uv)), K, box, image)
 
 
 def test_refinement_recovers_the_pose_from_perfect_evidence(models, renderers, sample_view):
@@ -121,7 +152,7 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     image, K = sample
     joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
     fit = fit_pose(parser, renderers["panda"], models["panda"], image, K, joints)
-    assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "score"}
+    assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "edges", "score"}
     tracked = track_pose(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 3, 2))
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
 

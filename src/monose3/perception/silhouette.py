@@ -57,6 +57,15 @@ class Outline:
         return self._nearest[v, u]
 
 
+def outline_surface_points(pixels: np.ndarray, depth: np.ndarray, pose: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """The surface points ``[N, 3]`` (base frame) that a render at ``pose`` shows at its outline
+    ``pixels`` ``[N, 2]``: each pixel back-projected through the render's ``depth``, then R^T (X - t)."""
+    xs, ys = pixels[:, 0].astype(int), pixels[:, 1].astype(int)
+    z = depth[ys, xs].astype(np.float64)
+    cam = np.stack([(xs - K[0, 2]) / K[0, 0] * z, (ys - K[1, 2]) / K[1, 1] * z, z], -1)
+    return (cam - pose[:3, 3]) @ pose[:3, :3]
+
+
 def _subsample(n: int, rng: np.random.Generator) -> np.ndarray:
     return rng.choice(n, OUTLINE_POINTS, replace=False) if n > OUTLINE_POINTS else np.arange(n)
 
@@ -72,10 +81,7 @@ def outline_terms(target: Outline, render_mask: np.ndarray, depth: np.ndarray, p
     rendered = Outline(render_mask)
     if not len(rendered) or not len(target):
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
-    xs, ys = rendered.pixels[:, 0].astype(int), rendered.pixels[:, 1].astype(int)
-    z = depth[ys, xs].astype(np.float64)
-    cam = np.stack([(xs - K[0, 2]) / K[0, 0] * z, (ys - K[1, 2]) / K[1, 1] * z, z], -1)
-    base = (cam - pose[:3, 3]) @ pose[:3, :3]  # R^T (X - t): every render outline pixel's surface point
+    base = outline_surface_points(rendered.pixels, depth, pose, K)
     fwd = _subsample(len(rendered), rng)
     fwd_goal = target.pixels[target.nearest(rendered.pixels[fwd])]
     rev_goal = target.pixels[_subsample(len(target), rng)]

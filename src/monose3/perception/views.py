@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -28,6 +29,7 @@ class ViewEvidence:
     confidence: np.ndarray  # [K]
     K: np.ndarray  # [3, 3] the view's intrinsics
     box: np.ndarray  # [4] x1, y1, x2, y2 in the image (edge coordinates)
+    image: np.ndarray | None = None  # [h, w, 3] float32 in [0, 1]: the view's pixels (None: no edge terms)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -55,8 +57,9 @@ def parse_view(parser: RobotParser, image: torch.Tensor, K: np.ndarray, box: np.
     mask = F.interpolate(mask_logits, size=(size[1], size[0]), mode="bilinear", align_corners=False)
     uv, conf = decode_keypoints(kp_logits.float())
     K_view = crop_intrinsics(torch.from_numpy(K)[None], torch.from_numpy(box)[None].double(), size)[0].numpy()
+    pixels = view[0].permute(1, 2, 0).numpy().astype(np.float32)
     return ViewEvidence(mask[0, 0].float().sigmoid().cpu(), uv[0].cpu().double().numpy(), conf[0].cpu().numpy(),
-                        K_view, np.asarray(box, np.float64))  # fmt: skip
+                        K_view, np.asarray(box, np.float64), pixels)  # fmt: skip
 
 
 def full_box(image_size: tuple[int, int], aspect: float) -> np.ndarray:
@@ -87,8 +90,9 @@ def box_around(lo: np.ndarray, hi: np.ndarray, aspect: float) -> np.ndarray:
 
 
 def resized_view(view: ViewEvidence, size: tuple[int, int]) -> ViewEvidence:
-    """``view`` at another resolution (the refinement's coarse pass): mask, keypoints and K scaled."""
+    """``view`` at another resolution (the refinement's coarse pass): mask, keypoints, K and pixels scaled."""
     mask = F.interpolate(view.mask[None, None], size=(size[1], size[0]), mode="bilinear", align_corners=False)
     scale = np.array(size, float) / np.array(view.size, float)
     keypoints = (view.keypoints + 0.5) * scale - 0.5
-    return ViewEvidence(mask[0, 0], keypoints, view.confidence, scale_K(view.K, view.size, size), view.box)
+    image = None if view.image is None else cv2.resize(view.image, size, interpolation=cv2.INTER_AREA)
+    return ViewEvidence(mask[0, 0], keypoints, view.confidence, scale_K(view.K, view.size, size), view.box, image)
