@@ -3,8 +3,9 @@
 Rows (one per stage, each adding to the one above): the paper's reverse diffusion alone
 (RevDiff, 5 DDIM + 5 direct steps); the robot parser with PnP (hypotheses scored by silhouette
 IoU, no sphere search, no refinement); + the coarse search over the sphere; + the silhouette
-and keypoint refinement; + its edge stage (the default). Per row and set: AUC of ADD (0-100 mm), median ADD, CPU
-seconds per image (with the stages' split for the default). Then:
+and keypoint refinement on the mask alone; + the image's edges in its fine pass (the default).
+Per row and set: AUC of ADD (0-100 mm), median ADD, CPU seconds per image (with the stages'
+split for the default). Then:
 
 * refinement from the true pose moved by ``--start-deg`` / ``--start-cm`` (a random axis and
   direction): the share of frames that end closer than they started, start and final medians;
@@ -39,7 +40,6 @@ from monose3.geometry.poses import perturb_poses
 from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.fitting import (
     COARSE_ITERATIONS,
-    EDGE_ITERATIONS,
     REFINE_ITERATIONS,
     RELIABLE_IOU,
     fit_pose,
@@ -171,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--parser", help="robot parser weights (default: bundled)")
     p.add_argument("--start-deg", type=float, default=5.0)
     p.add_argument("--start-cm", type=float, default=3.0)
-    iterations = [COARSE_ITERATIONS, REFINE_ITERATIONS, EDGE_ITERATIONS]
-    p.add_argument("--refine-iterations", type=int, nargs=3, default=iterations, metavar=("COARSE", "FINE", "EDGE"))
+    iterations = [COARSE_ITERATIONS, REFINE_ITERATIONS]
+    p.add_argument("--refine-iterations", type=int, nargs=2, default=iterations, metavar=("COARSE", "FINE"))
     p.add_argument("--bad-mm", type=float, default=30.0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json")

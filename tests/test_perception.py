@@ -152,7 +152,7 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     image, K = sample
     joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
     fit = fit_pose(parser, renderers["panda"], models["panda"], image, K, joints)
-    assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "edges", "score"}
+    assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "score"}
     tracked = track_pose(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 3, 2))
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
 

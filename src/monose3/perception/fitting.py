@@ -17,9 +17,9 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
    differentiable renderer or a derivative-free search: our rasteriser is exact but not
    differentiable, and correspondences make each iteration one render and a 6x6 solve, where a
    derivative-free search needs dozens of renders per step for the same precision.
-5. **Edges.** A few more iterations at the view's resolution pull the render's outline onto
-   the image's own edges as well (``perception/edges.py``), with the mask's terms weighted
-   down: the mask brought the fit into its basin, the edges give it sub-pixel precision.
+5. **Edges.** At the view's resolution the render's outline is also pulled onto the image's
+   own edges (``perception/edges.py``), with the mask's terms weighted down: the coarse pass on
+   the mask brought the fit into its basin, the edges give it sub-pixel precision.
 
 The reported pose is the refined hypothesis with the best final fit; the fit (IoU, keypoint
 residual) is the confidence.
@@ -59,15 +59,14 @@ from monose3.robot.renderer import RobotRenderer
 MIN_KEYPOINT_CONFIDENCE = 0.2
 PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view's width
 SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
-KEEP_HYPOTHESES = 4  # refined per image
-COARSE_ITERATIONS = 12  # refinement at SCORE_SIZE
-REFINE_ITERATIONS = 6  # then at the view's resolution
-EDGE_ITERATIONS = 8  # then with the image's edges
-TRACK_ITERATIONS = (4, 2, 2)  # coarse, fine, edges: between frames the robot moves little
+KEEP_HYPOTHESES = 2  # refined per image
+COARSE_ITERATIONS = 12  # refinement at SCORE_SIZE, on the mask
+REFINE_ITERATIONS = 16  # then at the view's resolution, with the image's edges
+TRACK_ITERATIONS = (4, 4)  # coarse, fine: between frames the robot moves little
 # With the edges, the mask's terms weigh this share of their weight, and the edges up to
-# EDGE_WEIGHT (benchmarks/accuracy.py: held-out hard AUC 48 -> 56 on 60 frames, reallike unchanged at 92).
+# EDGE_WEIGHT: where the image shows an edge it decides (benchmarks/accuracy.py).
 MASK_SHARE_WITH_EDGES = 0.3
-EDGE_WEIGHT = 100.0
+EDGE_WEIGHT = 1000.0
 KEYPOINT_PENALTY = 2.0  # score = IoU - this * (keypoint error / view width)
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
 KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
@@ -211,13 +210,12 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
 
 def refine_coarse_to_fine(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
                           keypoints_base: np.ndarray, coarse: int = COARSE_ITERATIONS, fine: int = REFINE_ITERATIONS,
-                          edge: int = EDGE_ITERATIONS) -> np.ndarray:  # fmt: skip
-    """:func:`refine_poses` at :data:`SCORE_SIZE` first (``coarse`` iterations: renders 4x
-    cheaper, and ICP on silhouettes needs many small steps from afar), then ``fine`` at the
-    view's resolution, then ``edge`` with the image's edges."""
+                          edges: bool = True) -> np.ndarray:  # fmt: skip
+    """:func:`refine_poses` on the mask at :data:`SCORE_SIZE` first (``coarse`` iterations:
+    renders 4x cheaper, and ICP on silhouettes needs many small steps from afar), then ``fine``
+    at the view's resolution, with the image's ``edges``."""
     poses = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, coarse)
-    poses = refine_poses(renderer, joints, poses, view, keypoints_base, fine)
-    return refine_poses(renderer, joints, poses, view, keypoints_base, edge, edges=True)
+    return refine_poses(renderer, joints, poses, view, keypoints_base, fine, edges)
 
 
 def inside_fraction(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> float:
@@ -262,8 +260,8 @@ def fit_pose(
     edges: bool = True,
 ) -> Fit:
     """The module's stages on one image (``[H, W, 3]`` uint8 RGB, its K, the joints).
-    ``sphere`` / ``refine`` / ``edges`` off leave out the sphere's hypotheses / the refinement /
-    its edge stage (ablations)."""
+    ``sphere`` / ``refine`` off leave out the sphere's hypotheses / the refinement, ``edges``
+    off refines on the mask alone (ablations)."""
     clock = _Clock()
     size = parser.config.input_size
     aspect = size[0] / size[1]
@@ -290,11 +288,8 @@ def fit_pose(
     poses = poses[np.argsort(-scores)[:KEEP_HYPOTHESES]]
     clock.lap("search")
     if refine:
-        poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base, edge=0)
+        poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base, edges=edges)
         clock.lap("refine")
-    if refine and edges:
-        poses = refine_poses(renderer, joints, poses, view, kp_base, EDGE_ITERATIONS, edges=True)
-        clock.lap("edges")
     fit = best_fit(renderer, joints, poses, view, kp_base)
     clock.lap("score")
     fit.timings = clock.laps
@@ -335,9 +330,9 @@ def track_pose(
     K: np.ndarray,
     joints: np.ndarray,
     previous: np.ndarray,
-    iterations: tuple[int, int, int] = TRACK_ITERATIONS,
+    iterations: tuple[int, int] = TRACK_ITERATIONS,
 ) -> Fit:
-    """Tracking: the refinement's (coarse, fine, edge) ``iterations`` from the previous pose, in one
+    """Tracking: the refinement's (coarse, fine) ``iterations`` from the previous pose, in one
     parser view around where that pose puts the robot's surface."""
     size = parser.config.input_size
     aspect = size[0] / size[1]
