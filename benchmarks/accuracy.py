@@ -9,7 +9,7 @@ split for the default). Then:
 
 * refinement from the true pose moved by ``--start-deg`` / ``--start-cm`` (a random axis and
   direction): the share of frames that end closer than they started, start and final medians;
-* the ``reliable`` flag (silhouette IoU >= RELIABLE_IOU) against ADD > ``--bad-mm``: recall of
+* the ``reliable`` flag (``perception.fitting.fit_doubts``) against ADD > ``--bad-mm``: recall of
   the bad estimates and false alarms among the good ones;
 * tracking speed: ``PoseEstimator.track`` from the true pose moved by 2 cm / 3 deg (images/s).
 
@@ -41,7 +41,7 @@ from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.fitting import (
     COARSE_ITERATIONS,
     REFINE_ITERATIONS,
-    RELIABLE_IOU,
+    fit_doubts,
     fit_pose,
     track_pose,
 )
@@ -57,18 +57,19 @@ def frame_add(estimator, frame, pose: np.ndarray) -> float:
     return float(add_per_frame(pred, frame.keypoints_3d[None])[0])
 
 
-def run_stage(estimator, frame, image, stage: str) -> tuple[np.ndarray, dict, float | None]:
-    """(pose, timings, silhouette IoU) of one frame through one stage."""
+def run_stage(estimator, frame, image, stage: str) -> tuple[np.ndarray, dict, bool]:
+    """(pose, timings, whether the fit flags it unreliable) of one frame through one stage."""
     if stage == STAGES[0]:
         tick = time.perf_counter()
         est = estimator.estimate([image], frame.K[None], frame.joints[None], sampler="revdiff")
         pose = est.poses[0] if est.in_view[0] else np.full((4, 4), np.nan)
-        return pose, {"total": time.perf_counter() - tick}, None
+        return pose, {"total": time.perf_counter() - tick}, True
     options = {STAGES[1]: (False, False, False), STAGES[2]: (True, False, False), STAGES[3]: (True, True, False),
                STAGES[4]: (True, True, True)}[stage]  # fmt: skip
     args = (estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
     fit = fit_pose(*args, sphere=options[0], refine=options[1], edges=options[2])
-    return fit.pose, {**fit.timings, "total": sum(fit.timings.values())}, fit.iou if fit.found else 0.0
+    doubts = fit_doubts(fit, estimator.robot, frame.joints, frame.K, image.shape)
+    return fit.pose, {**fit.timings, "total": sum(fit.timings.values())}, bool(doubts)
 
 
 def moved(pose: np.ndarray, rng: np.random.Generator, deg: float, cm: float) -> np.ndarray:
@@ -85,19 +86,19 @@ def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
     frames = open_dataset(folder, estimator.robot)
     n = min(limit, len(frames))
     rng = np.random.default_rng(0)
-    adds, seconds, ious = defaultdict(list), defaultdict(list), []
+    adds, seconds, flagged = defaultdict(list), defaultdict(list), []
     refine = {"start": [], "final": []}
     track_seconds = []
     for i in tqdm(range(n), desc=Path(folder).name):
         frame = frames[i]
         image = frame.load_image()
         for stage in STAGES:
-            pose, timings, iou = run_stage(estimator, frame, image, stage)
+            pose, timings, doubted = run_stage(estimator, frame, image, stage)
             adds[stage].append(frame_add(estimator, frame, pose))
             for key, value in timings.items():
                 seconds[f"{stage}/{key}"].append(value)
             if stage == STAGES[-1]:
-                ious.append(iou)
+                flagged.append(doubted)
         start = moved(frame.pose, rng, args.start_deg, args.start_cm)
         fit = track_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints, start,
                          iterations=tuple(args.refine_iterations))  # fmt: skip
@@ -107,17 +108,17 @@ def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
         tick = time.perf_counter()
         estimator.track([image], frame.K[None], frame.joints[None], near)
         track_seconds.append(time.perf_counter() - tick)
-    return summarise(adds, seconds, ious, refine, track_seconds, args.bad_mm / 1000)
+    return summarise(adds, seconds, flagged, refine, track_seconds, args.bad_mm / 1000)
 
 
-def summarise(adds, seconds, ious, refine, track_seconds, bad_m: float) -> dict:
+def summarise(adds, seconds, flagged, refine, track_seconds, bad_m: float) -> dict:
     rows = {}
     for stage in STAGES:
         a = np.asarray(adds[stage])
         split = {k.split("/", 1)[1]: float(np.mean(v)) for k, v in seconds.items() if k.startswith(stage + "/")}
         rows[stage] = {"auc": auc(a), "median_add_mm": float(np.median(a) * 1000), "seconds": split}
     final = np.asarray(adds[STAGES[-1]])
-    flagged = np.asarray(ious) < RELIABLE_IOU
+    flagged = np.asarray(flagged)
     bad = final > bad_m
     start, end = np.asarray(refine["start"]), np.asarray(refine["final"])
     return {
@@ -157,7 +158,7 @@ def print_report(results: dict[str, dict], args) -> None:
             f"{ref['final_median_mm']:.1f} mm"
         )
         print(
-            f"  reliable flag (IoU < {RELIABLE_IOU}) vs ADD > {args.bad_mm:g} mm: recall {100 * flag['recall']:.0f} % "
+            f"  reliable flag vs ADD > {args.bad_mm:g} mm: recall {100 * flag['recall']:.0f} % "
             f"of {flag['bad']} bad, false alarms {100 * flag['false_alarms']:.0f} % of {flag['good']} good"
         )
         print(f"  tracking: {r['tracking_images_per_s']:.1f} images/s")

@@ -13,7 +13,7 @@ from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
-from monose3.perception.edges import edge_terms, strongest_edges
+from monose3.perception.edges import edge_terms, find_edges
 from monose3.perception.fitting import fit_pose, refine_coarse_to_fine, track_pose
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.silhouette import Outline
@@ -98,13 +98,13 @@ def test_outline_nearest_matches_brute_force():
 # ---- image edges ----------------------------------------------------------------------------------
 
 
-def test_strongest_edges_finds_a_blurred_step_to_a_tenth_of_a_pixel():
+def test_find_edges_finds_a_blurred_step_to_a_tenth_of_a_pixel():
     x = np.arange(64, dtype=np.float32)
     step_at = 30.3  # the grey level changes between pixel centres 30 and 31, a third of the way
     row = 0.2 + 0.6 / (1 + np.exp(-(x - step_at) / 0.6))
     image = np.repeat(np.repeat(row[None, :, None], 16, 0), 3, 2)
     pixels = np.array([[28.6, 8.0], [31.9, 8.0]])  # the search starts 1.7 and 1.6 pixels away
-    offsets, strength = strongest_edges(image, pixels, np.array([[1.0, 0.0], [1.0, 0.0]]))
+    offsets, strength = find_edges(image, pixels, np.array([[1.0, 0.0], [1.0, 0.0]]))
     assert np.allclose(pixels[:, 0] + offsets, step_at, atol=0.1) and (strength > 0.3).all()
 
 

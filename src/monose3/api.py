@@ -15,7 +15,6 @@ from monose3 import atomic
 from monose3.data import validation
 from monose3.errors import Monose3Error
 from monose3.method.estimator import UNRELIABLE_MM, Estimate, PoseEstimator
-from monose3.perception.fitting import RELIABLE_IOU
 from monose3.report.overlays import pose_overlays
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import load_model, load_parser
@@ -72,10 +71,24 @@ class PoseResult:
         return None if self.estimate.fit_iou is None else float(self.estimate.fit_iou[0])
 
     @property
+    def edge_support(self) -> float | None:
+        """The "fit" sampler's share of the estimate's outline that lies on the image's own edges; None otherwise."""
+        return None if self.estimate.edge_support is None else float(self.estimate.edge_support[0])
+
+    @property
+    def doubts(self) -> list[str]:
+        """Why the estimate is unreliable, in words (empty when it is reliable or there is nothing to judge by)."""
+        if self.estimate.doubts is not None:
+            return list(self.estimate.doubts[0])
+        return ["chains disagree"] if self.reliable is False else []
+
+    @property
     def reliable(self) -> bool | None:
-        """ "fit": whether the silhouette fits (IoU >= ``RELIABLE_IOU``) with most of the robot in
-        the image. The paper's samplers: whether the chains agree within ``UNRELIABLE_MM``; None
-        with one chain (nothing to compare)."""
+        """ "fit": whether the fit can be trusted: the silhouette fits the mask, its outline lies
+        on the image's edges, the refined hypotheses agree, and most of the robot is in the image
+        (``perception.fitting.RELIABLE_*``; :attr:`doubts` says which failed). The paper's
+        samplers: whether the chains agree within ``UNRELIABLE_MM``; None with one chain (nothing
+        to compare)."""
         if self.estimate.reliable is not None:
             return bool(self.estimate.reliable[0])
         if self.chains < 2 or not np.isfinite(self.spread_mm):
@@ -105,6 +118,8 @@ class PoseResult:
             "reliable": self.reliable,
             "sampler": self.sampler,
             "silhouette_iou": self.fit_iou,
+            "edge_support": self.edge_support,
+            "doubts": self.doubts,
             "chain_spread_mm": _finite_or_none(self.spread_mm) if self.chains > 1 else None,
             "chain_spread_deg": _finite_or_none(self.spread_deg) if self.chains > 1 else None,
             "chains": self.chains,
@@ -211,12 +226,8 @@ def write_pose_files(result: PoseResult, out: Path) -> tuple[Path, Path]:
 def format_pose(result: PoseResult) -> str:
     fmt = lambda m: "\n".join("  [" + ", ".join(f"{v: .6f}" for v in row) + "]" for row in m)  # noqa: E731
     if result.fit_iou is not None:
-        rel = (
-            "reliable"
-            if result.reliable
-            else f"UNRELIABLE (silhouette IoU below {RELIABLE_IOU} or robot mostly outside)"
-        )
-        how = f"silhouette IoU {result.fit_iou:.3f}, {rel}"
+        rel = "reliable" if result.reliable else f"UNRELIABLE ({'; '.join(result.doubts)})"
+        how = f"silhouette IoU {result.fit_iou:.3f}, outline on edges {result.edge_support:.2f}, {rel}"
     elif result.reliable is None:
         how = "a single chain has no spread, so no confidence (use --chains 2 or more for one)"
     else:

@@ -26,11 +26,9 @@ from monose3.method.render_compare import crop_batch, crop_geometry, image_to_te
 from monose3.method.scheduler import DDIMScheduler
 from monose3.method.update import apply_update, raw_to_update
 from monose3.perception.fitting import (
-    MIN_INSIDE,
-    RELIABLE_IOU,
     Fit,
+    fit_doubts,
     fit_pose,
-    inside_fraction,
     pose_in_view,
     track_pose,
 )
@@ -63,6 +61,8 @@ class Estimate:
     keypoint_px: np.ndarray | None = None  # [B] keypoint reprojection error, parser-view pixels
     found: np.ndarray | None = None  # [B] bool: the parser found the robot (else the pose is NaN)
     reliable: np.ndarray | None = None  # [B] bool: the fit is good and the robot mostly in the image
+    edge_support: np.ndarray | None = None  # [B] share of the estimate's outline on the image's edges
+    doubts: list[list[str]] | None = None  # [B] why each estimate is unreliable, in words (empty: reliable)
 
 
 @dataclass
@@ -267,20 +267,21 @@ class PoseEstimator:
         found = np.array([f.found for f in fits])
         views = list(zip(poses, joints, Ks, [img.shape for img in images], strict=True))
         in_view = found & np.array([pose_in_view(self.robot, *v) for v in views])
-        inside = np.array([inside_fraction(self.robot, *v) for v in views])
-        iou = np.array([f.iou for f in fits])
+        doubts = [fit_doubts(fit, self.robot, *v[1:]) for fit, v in zip(fits, views, strict=True)]
         return Estimate(
             poses=poses,
             hypotheses=candidates,
             in_view=in_view,
-            spread_mm=np.zeros(len(fits)),
+            spread_mm=np.array([f.spread_mm for f in fits]),
             spread_deg=np.zeros(len(fits)),
             history=[candidates],
             timings={"total": seconds},
-            fit_iou=iou,
+            fit_iou=np.array([f.iou for f in fits]),
             keypoint_px=np.array([f.keypoint_error for f in fits]),
             found=found,
-            reliable=in_view & (iou >= RELIABLE_IOU) & (inside >= MIN_INSIDE),
+            reliable=in_view & np.array([not reasons for reasons in doubts]),
+            edge_support=np.array([f.edge_support for f in fits]),
+            doubts=doubts,
         )
 
     def track(

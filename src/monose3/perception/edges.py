@@ -1,13 +1,13 @@
-"""Image edges: where, along its normal, each outline pixel of a render meets the strongest
-edge of the image itself.
+"""Image edges: where, along its normal, each outline pixel of a render meets an edge of the
+image itself.
 
 Not in the paper. The parser's mask places the robot's outline to about a pixel, and for a
 small, distant robot a pixel of outline is a percent of its size, so a percent of its depth
 (30 mm at 3 m). The image's own edges are sharper where the robot stands out from the
 background. This is the classic contour-tracking step (RAPID; Harris, 1992): from the pose the
 mask fit converged to, each render outline pixel searches a few pixels along its normal for
-the image's steepest colour change, and is pulled there. The mask keeps the fit in its basin;
-the edges give it sub-pixel precision. Where the robot barely differs from the background,
+the image's nearest strong colour change, and is pulled there. The mask keeps the fit in its
+basin; the edges give it sub-pixel precision. Where the robot barely differs from the background,
 the edges are weak and weigh little, and the mask decides.
 """
 
@@ -37,10 +37,11 @@ def outline_normals(mask: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return np.where(norm > 1e-6, -grad / np.maximum(norm, 1e-6), 0.0)
 
 
-def strongest_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each pixel, the offset along its normal (view pixels, sub-pixel) of the steepest colour
-    change of ``image`` ``[h, w, 3]`` (float32 in [0, 1]) within :data:`SEARCH_RADIUS`, and
-    that change's size (0 where the search leaves the image)."""
+def find_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel, the offset along its normal (view pixels, sub-pixel) of the edge of
+    ``image`` ``[h, w, 3]`` (float32 in [0, 1]) that it crosses within :data:`SEARCH_RADIUS`
+    (the local maximum of colour change that is strongest once weighed by nearness), and that
+    change's size (0 where the search leaves the image)."""
     steps = np.arange(-SEARCH_RADIUS, SEARCH_RADIUS + SEARCH_STEP / 2, SEARCH_STEP)
     xs = (pixels[:, None, 0] + steps * normals[:, None, 0]).astype(np.float32)
     ys = (pixels[:, None, 1] + steps * normals[:, None, 1]).astype(np.float32)
@@ -48,7 +49,12 @@ def strongest_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray) 
     inside = (xs >= 0) & (xs <= image.shape[1] - 1) & (ys >= 0) & (ys <= image.shape[0] - 1)
     change = np.linalg.norm(profiles[:, 1:] - profiles[:, :-1], axis=-1)  # between samples, at steps + STEP/2
     change[~(inside[:, 1:] & inside[:, :-1])] = 0.0
-    rows, peak = np.arange(len(change)), change.argmax(1)
+    # Of the profile's local maxima (the edges it crosses), the strongest once weighed by
+    # nearness: an edge inside the robot, a little further, does not win over its outline.
+    padded = np.pad(change, ((0, 0), (1, 1)))
+    crossed = (change >= padded[:, :-2]) & (change >= padded[:, 2:])
+    at = steps[:-1] + SEARCH_STEP / 2 - 0.5  # each change's offset from the render's silhouette edge
+    rows, peak = np.arange(len(change)), (crossed * change / (1 + (at / EDGE_SCALE) ** 2)).argmax(1)
     inner = peak.clip(1, change.shape[1] - 2)
     left, mid, right = change[rows, inner - 1], change[rows, peak], change[rows, inner + 1]
     curve = left - 2 * mid + right
@@ -57,23 +63,37 @@ def strongest_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray) 
     return steps[peak] + SEARCH_STEP * (0.5 + vertex), mid
 
 
+def _edge_pulls(image: np.ndarray, render_mask: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each of the render's outline ``pixels``: the pixel its silhouette edge should move to
+    ``[N, 2]``, and how much that pull counts ``[N]`` in [0, 1] (the edge's strength, capped at
+    :data:`STRONG_EDGE`, times a Cauchy of its distance; 0 where there is no edge)."""
+    normals = outline_normals(render_mask, pixels)
+    offset, strength = find_edges(image, pixels, normals)
+    # An outline pixel lies inside the silhouette, whose edge is half a pixel further out: that
+    # edge, not the pixel's centre, goes to the image's edge.
+    offset = offset - 0.5
+    has_edge = (strength >= WEAK_EDGE) & normals.any(-1)
+    weight = has_edge * np.minimum(strength / STRONG_EDGE, 1.0) / (1 + (offset / EDGE_SCALE) ** 2)
+    return pixels + offset[:, None] * normals, weight
+
+
 def edge_terms(image: np.ndarray, render_mask: np.ndarray, depth: np.ndarray, pose: np.ndarray, K: np.ndarray,
                weight: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """The edges' residual terms for one pose, as :func:`~monose3.perception.silhouette.outline_terms`
     gives the mask's: (surface points in the base frame ``[N, 3]``, the pixels they should project
-    to ``[N, 2]``, weights ``[N]`` summing to at most ``weight``). Each term weighs the edge's
-    strength (capped at :data:`STRONG_EDGE`) and a Cauchy of its distance."""
+    to ``[N, 2]``, weights ``[N]`` summing to at most ``weight``), for :data:`EDGE_POINTS` of the
+    render's outline pixels."""
     rendered = Outline(render_mask)
     if not len(rendered):
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
-    chosen = rng.choice(len(rendered), min(EDGE_POINTS, len(rendered)), replace=False)
-    pixels = rendered.pixels[chosen]
-    normals = outline_normals(render_mask, pixels)
-    offset, strength = strongest_edges(image, pixels, normals)
-    has_edge = (strength >= WEAK_EDGE) & normals.any(-1)
-    w = has_edge * np.minimum(strength / STRONG_EDGE, 1.0) / (1 + ((offset - 0.5) / EDGE_SCALE) ** 2)
-    points = outline_surface_points(pixels, depth, pose, K)
-    # An outline pixel lies inside the silhouette, whose edge is half a pixel further out: that
-    # edge, not the pixel's centre, goes to the image's edge.
-    goals = pixels + (offset - 0.5)[:, None] * normals
-    return points, goals, weight * w / len(pixels)
+    pixels = rendered.pixels[rng.choice(len(rendered), min(EDGE_POINTS, len(rendered)), replace=False)]
+    goals, pull = _edge_pulls(image, render_mask, pixels)
+    return outline_surface_points(pixels, depth, pose, K), goals, weight * pull / len(pixels)
+
+
+def edge_support(image: np.ndarray, render_mask: np.ndarray) -> float:
+    """How much of the render's outline lies on the image's own edges, in [0, 1]: the mean pull
+    weight over all its outline pixels (1: every one on a strong edge within half a pixel or so).
+    Independent of the parser, so a pose fitted to a wrong mask shows here (the ``reliable`` flag)."""
+    rendered = Outline(render_mask)
+    return float(_edge_pulls(image, render_mask, rendered.pixels)[1].mean()) if len(rendered) else 0.0
