@@ -233,6 +233,15 @@ def test_accuracy_small(tmp_path: Path, tiny_dream: Path, capsys, keep_threads: 
     assert set(data["stages"]) == set(acc.STAGES) and 0 <= data["refinement"]["closer_share"] <= 1
 
 
+@pytest.mark.slow
+def test_reliable_flag_small(tiny_dream: Path, capsys, keep_threads: None) -> None:
+    """The threshold search runs on a folder and reports the shipped flag's recall and false alarms."""
+    flag = load("reliable_flag")
+    assert flag.main(["--data", str(tiny_dream), "--recall", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "frames" in out and "IoU >= " in out and "the flag as shipped" in out
+
+
 @pytest.mark.parametrize(
     ("args", "words"),
     [
