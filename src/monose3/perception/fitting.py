@@ -41,7 +41,14 @@ from monose3.geometry.rotations import rotation_angle
 from monose3.method.flow_pose import solve_pose
 from monose3.perception.edges import edge_support, edge_terms
 from monose3.perception.parser import RobotParser
-from monose3.perception.silhouette import OUTLINE_SCALE, Outline, outline_terms, silhouette_ious
+from monose3.perception.silhouette import (
+    OUTLINE_SCALE,
+    Outline,
+    mask_ious,
+    outline_terms,
+    render_silhouettes,
+    silhouette_ious,
+)
 from monose3.perception.views import (
     MASK_THRESHOLD,
     MIN_MASK_FRACTION,
@@ -68,6 +75,9 @@ TRACK_ITERATIONS = (4, 4)  # coarse, fine: between frames the robot moves little
 MASK_SHARE_WITH_EDGES = 0.3
 EDGE_WEIGHT = 1000.0
 KEYPOINT_PENALTY = 2.0  # score = IoU - this * (keypoint error / view width)
+# The final choice adds this times the outline's edge support: of two refined hypotheses that fit
+# the mask alike, the one the image's edges confirm (held-out hard AUC +3.5 with 6 hypotheses).
+EDGE_SUPPORT_SCORE = 0.5
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
 KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
 CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
@@ -327,19 +337,20 @@ def fit_pose(
 
 def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
              kp_base: np.ndarray) -> Fit:  # fmt: skip
-    """The best of ``poses`` by their fit in ``view`` (silhouette at full view size, keypoints),
-    with what the ``reliable`` flag reads: its outline's support by the image's edges and the
-    other poses' distance to it."""
-    ious = silhouette_ious(renderer, joints, poses, view, view.size)
+    """The best of ``poses`` by their fit in ``view`` (silhouette at full view size, keypoints,
+    and how much of the outline lies on the image's edges), with what the ``reliable`` flag
+    reads: that edge support and the other poses' distance to the best."""
+    silhouettes = render_silhouettes(renderer, joints, poses, view, view.size)
+    ious = mask_ious(silhouettes, view)
     errors = keypoint_errors(poses, kp_base, view)
-    scores = fit_scores(ious, errors, view)
+    supports = np.zeros(len(poses))
+    if view.image is not None:
+        supports = np.array([edge_support(view.image, mask) for mask in silhouettes.cpu().numpy()])
+    scores = fit_scores(ious, errors, view) + EDGE_SUPPORT_SCORE * supports
     order = np.argsort(-scores)
     best = order[0]
-    fit = Fit(poses[best], float(ious[best]), float(errors[best]), float(scores[best]), view, poses[order])
-    if view.image is not None:
-        rendered = renderer.render(joints[None], torch.from_numpy(poses[best][None]), torch.from_numpy(view.K)[None],
-                                   view.size)  # fmt: skip
-        fit.edge_support = edge_support(view.image, rendered.mask[0].cpu().numpy())
+    fit = Fit(poses[best], float(ious[best]), float(errors[best]), float(scores[best]), view, poses[order],
+              edge_support=float(supports[best]))  # fmt: skip
     cam = np.einsum("hij,kj->hki", poses[order, :3, :3], kp_base) + poses[order, None, :3, 3]
     fit.spread_mm = float(1000 * np.linalg.norm(cam[1:] - cam[:1], axis=-1).mean()) if len(poses) > 1 else 0.0
     return fit

@@ -21,18 +21,28 @@ MASK_TO_RENDER = 25.0
 OUTLINE_SCALE = 0.015  # Cauchy scale of outline residuals, fraction of the view's width
 
 
+def render_silhouettes(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                       size: tuple[int, int]) -> torch.Tensor:  # fmt: skip
+    """The silhouettes ``[H, h, w]`` (bool) of ``poses`` in ``view``, rendered at ``size`` (one batch)."""
+    n = len(poses)
+    K = torch.from_numpy(scale_K(view.K, view.size, size))[None].expand(n, 3, 3)
+    return renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, size).mask
+
+
+def mask_ious(silhouettes: torch.Tensor, view: ViewEvidence) -> np.ndarray:
+    """IoU ``[H]`` of each silhouette ``[H, h, w]`` with the view's mask, brought to their size."""
+    size = silhouettes.shape[-2:]
+    mask = F.interpolate(view.mask[None, None], size=tuple(size), mode="bilinear", align_corners=False)[0, 0]
+    mask = (mask > MASK_THRESHOLD).to(silhouettes.device)
+    inter = (silhouettes & mask).flatten(1).sum(1).float()
+    union = (silhouettes | mask).flatten(1).sum(1).float().clamp_min(1)
+    return (inter / union).cpu().numpy()
+
+
 def silhouette_ious(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
                     size: tuple[int, int]) -> np.ndarray:  # fmt: skip
     """IoU ``[H]`` of each pose's rendered silhouette with the view's mask, compared at ``size``."""
-    K = scale_K(view.K, view.size, size)
-    n = len(poses)
-    K = torch.from_numpy(K)[None].expand(n, 3, 3)
-    rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, size)
-    mask = F.interpolate(view.mask[None, None], size=(size[1], size[0]), mode="bilinear", align_corners=False)[0, 0]
-    mask = (mask > MASK_THRESHOLD).to(rendered.mask.device)
-    inter = (rendered.mask & mask).flatten(1).sum(1).float()
-    union = (rendered.mask | mask).flatten(1).sum(1).float().clamp_min(1)
-    return (inter / union).cpu().numpy()
+    return mask_ious(render_silhouettes(renderer, joints, poses, view, size), view)
 
 
 class Outline:
