@@ -97,3 +97,16 @@ def test_cli_tracking_mode_reports_the_shared_tracking_policy(tiny_dream, tiny_c
     assert main([*argv, "--steps", "1", "0", "--limit", "2", "--json", str(out_json)]) == 0
     records = json.loads(out_json.read_text())["datasets"][tiny_dream.name]["frames"]
     assert [r["mode"] for r in records][:1] == [MODE_FULL] and len(records) == 2
+
+
+def test_fit_records_say_whether_each_estimate_is_reliable_and_why(tiny_dream):
+    """The default sampler's per-frame records carry the flag and what it read."""
+    est = load_estimator()
+    frames = open_dataset(tiny_dream, "panda")
+    try:
+        result = evaluate_dataset(est, frames, "tiny", limit=2, progress=False)
+    finally:
+        est.close()
+    for rec in result.frames:
+        assert {"silhouette_iou", "edge_support", "reliable", "doubts"} <= set(rec)
+        assert rec["reliable"] == (rec["in_view"] and not rec["doubts"]) and 0 <= rec["edge_support"] <= 1

@@ -14,7 +14,7 @@ from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
 from monose3.perception.edges import edge_terms, find_edges
-from monose3.perception.fitting import fit_pose, refine_coarse_to_fine, track_pose
+from monose3.perception.fitting import Fit, fit_pose, not_found, refine_coarse_to_fine, track_pose
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.silhouette import Outline
 from monose3.perception.views import ViewEvidence
@@ -153,6 +153,7 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
     fit = fit_pose(parser, renderers["panda"], models["panda"], image, K, joints)
     assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "score"}
+    assert 0.5 < fit.edge_support <= 1 and 0 <= fit.spread_mm < 5
     tracked = track_pose(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 3, 2))
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
 
@@ -187,7 +188,32 @@ def test_robot_mostly_outside_the_image_is_flagged_unreliable(sample):
     except Monose3Error as err:  # also acceptable: refused as not found or out of view, never a crash
         assert "not found" in str(err) or "outside the image" in str(err)
         return
-    assert result.reliable is False
+    assert result.reliable is False and result.doubts
+    assert "UNRELIABLE: " + result.doubts[0] in result.overlay_label
+
+
+def test_a_good_fit_is_reliable_and_says_what_it_read(sample):
+    """The bundled sample through the API: reliable, no doubts, the edge support in pose.json."""
+    image, K = sample
+    estimator = monose3.load_estimator()
+    try:
+        joints = monose3.load_joints(SAMPLE / "joints.json", estimator.robot)
+        result = monose3.estimate_pose(estimator, image, joints, K)
+    finally:
+        estimator.close()
+    data = result.to_dict()
+    assert result.reliable and result.doubts == [] and data["doubts"] == []
+    assert 0.5 < data["edge_support"] <= 1 and result.overlay_label == result.confidence_text
+
+
+def test_fit_doubts_name_each_failed_check(sample):
+    view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), sample[1], np.array([0.0, 0, 4, 4]))
+    fit = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None], edge_support=0.8, spread_mm=1.0)
+    assert fit.doubts() == []
+    doubted = Fit(np.eye(4), 0.5, 1.0, 0.4, view, np.eye(4)[None], edge_support=0.2, spread_mm=12.0)
+    reasons = doubted.doubts()
+    assert len(reasons) == 3 and "IoU 0.50" in reasons[0] and "edges 0.20" in reasons[1] and "12 mm" in reasons[2]
+    assert not_found(view).doubts() == ["the robot was not found"]
 
 
 def test_missing_or_corrupt_parser_weights_are_named(tmp_path, capsys):

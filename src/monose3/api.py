@@ -109,6 +109,13 @@ class PoseResult:
     def confidence_text(self) -> str:
         return "confidence n/a (1 chain)" if self.confidence is None else f"confidence {self.confidence:.2f}"
 
+    @property
+    def overlay_label(self) -> str:
+        """The overlay's caption: the confidence and, for an unreliable estimate, the first reason why."""
+        if self.reliable is False:
+            return f"{self.confidence_text}, UNRELIABLE: {(self.doubts or ['?'])[0]}"
+        return self.confidence_text
+
     def to_dict(self) -> dict:
         return {
             "units": "meters",

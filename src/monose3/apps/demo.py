@@ -66,7 +66,7 @@ def run_demo(args: argparse.Namespace) -> int:
         estimator.close()
     out = Path(checked.out)
     err = pose_errors(estimator.robot, joints, result.camera_from_base, truth)
-    text = f"ADD {err['add_mm']:.0f} mm, {result.confidence_text}"
+    text = f"ADD {err['add_mm']:.0f} mm, {result.overlay_label}"
     overlay = overlay_image(
         image, camera.K, joints, result.camera_from_base, estimator.robot, estimator.renderer, text=text
     )

@@ -79,7 +79,7 @@ def run_estimate(args: argparse.Namespace) -> int:
             result.camera_from_base,
             estimator.robot,
             estimator.renderer,  # the estimator's own: no second mesh set-up
-            text=result.confidence_text,
+            text=result.overlay_label,
         )
     finally:
         estimator.close()

@@ -125,7 +125,9 @@ def frame_record(frame, add: float, est: Estimate, j: int, step: TrackStep | Non
         "in_view": bool(est.in_view[j]),
     }
     if est.fit_iou is not None:
-        record.update(silhouette_iou=float(est.fit_iou[j]), keypoint_px=float(est.keypoint_px[j]))
+        record.update(silhouette_iou=float(est.fit_iou[j]), keypoint_px=float(est.keypoint_px[j]),
+                      edge_support=float(est.edge_support[j]), reliable=bool(est.reliable[j]),
+                      doubts=est.doubts[j])  # fmt: skip
     if step is not None:
         record.update(mode=step.mode, reason=step.reason)
     return record
