@@ -113,7 +113,7 @@ class PoseResult:
     def overlay_label(self) -> str:
         """The overlay's caption: the confidence and, for an unreliable estimate, the first reason why."""
         if self.reliable is False:
-            return f"{self.confidence_text}, UNRELIABLE: {(self.doubts or ['?'])[0]}"
+            return f"{self.confidence_text}, UNRELIABLE: {self.doubts[0]}"
         return self.confidence_text
 
     def to_dict(self) -> dict:
