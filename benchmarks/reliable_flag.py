@@ -42,13 +42,10 @@ def frame_features(estimator, folder: str) -> list[dict]:
         frame = frames[i]
         image = frame.load_image()
         fit = fitting.fit_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
-        add = np.inf
-        if fit.found:
-            pred = estimator.robot.keypoints(frame.joints[None], fit.pose[None])
-            add = float(add_per_frame(pred, frame.keypoints_3d[None])[0])
-        inside = fitting.inside_fraction(estimator.robot, fit.pose, frame.joints, frame.K, image.shape)
-        rows.append({"add": add, "iou": fit.iou, "support": fit.edge_support, "spread": fit.spread_mm,
-                     "inside": inside if fit.found else 0.0})  # fmt: skip
+        pred = estimator.robot.keypoints(frame.joints[None], fit.pose[None])  # NaN when not found: ADD inf
+        inside = fitting.inside_fraction(estimator.robot, fit.pose, frame.joints, frame.K, image.shape)  # 0 then
+        rows.append({"add": float(add_per_frame(pred, frame.keypoints_3d[None])[0]), "iou": fit.iou,
+                     "support": fit.edge_support, "spread": fit.spread_mm, "inside": inside})  # fmt: skip
     return rows
 
 

@@ -238,7 +238,7 @@ def format_pose(result: PoseResult) -> str:
     elif result.reliable is None:
         how = "a single chain has no spread, so no confidence (use --chains 2 or more for one)"
     else:
-        rel = "reliable" if result.reliable else "UNRELIABLE (chains disagree)"
+        rel = "reliable" if result.reliable else f"UNRELIABLE ({'; '.join(result.doubts)})"
         how = f"chains spread {result.spread_mm:.1f} mm / {result.spread_deg:.1f} deg, {rel}"
     return (
         f"camera_from_base (m):\n{fmt(result.camera_from_base)}\n"

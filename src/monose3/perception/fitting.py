@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from monose3.geometry.camera import project
-from monose3.geometry.poses import make_pose
+from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.flow_pose import solve_pose
 from monose3.perception.edges import edge_support, edge_terms
@@ -187,8 +187,7 @@ def _look_at(eye: np.ndarray) -> np.ndarray:
 
 def keypoint_distances(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
     """``[H, K]`` pixel distance of each keypoint, as each pose projects it, to where the parser saw it."""
-    cam = np.einsum("hij,kj->hki", poses[:, :3, :3], keypoints_base) + poses[:, None, :3, 3]
-    return np.linalg.norm(project(cam, view.K) - view.keypoints, axis=-1)
+    return np.linalg.norm(project(transform_points(poses, keypoints_base), view.K) - view.keypoints, axis=-1)
 
 
 def keypoint_errors(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
@@ -352,7 +351,7 @@ def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, vie
     best = order[0]
     fit = Fit(poses[best], float(ious[best]), float(errors[best]), float(scores[best]), view, poses[order],
               edge_support=float(supports[best]))  # fmt: skip
-    cam = np.einsum("hij,kj->hki", poses[order, :3, :3], kp_base) + poses[order, None, :3, 3]
+    cam = transform_points(poses[order], kp_base)
     fit.spread_mm = float(1000 * np.linalg.norm(cam[1:] - cam[:1], axis=-1).mean()) if len(poses) > 1 else 0.0
     return fit
 

@@ -3,6 +3,8 @@ correspondences (a symmetric chamfer) the refinement pulls the render along."""
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import cv2
 import numpy as np
 import torch
@@ -50,18 +52,22 @@ class Outline:
 
     def __init__(self, mask: np.ndarray):
         mask = mask.astype(np.uint8)
-        outline = mask - cv2.erode(mask, np.ones((3, 3), np.uint8))
-        ys, xs = np.nonzero(outline)  # raster order, as distanceTransformWithLabels numbers them
+        self._outline = mask - cv2.erode(mask, np.ones((3, 3), np.uint8))
+        ys, xs = np.nonzero(self._outline)  # raster order, as distanceTransformWithLabels numbers them
         self.pixels = np.stack([xs, ys], -1).astype(np.float64)
-        if len(xs):
-            _, labels = cv2.distanceTransformWithLabels(1 - outline, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-            self._nearest = labels - 1
 
     def __len__(self) -> int:
         return len(self.pixels)
 
+    @cached_property
+    def _nearest(self) -> np.ndarray:
+        """For every pixel, the index of the nearest outline pixel: a distance transform, made on
+        first use (the edges need only the outline's pixels)."""
+        _, labels = cv2.distanceTransformWithLabels(1 - self._outline, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+        return labels - 1
+
     def nearest(self, uv: np.ndarray) -> np.ndarray:
-        """Index ``[N]`` of the outline pixel nearest to each of ``uv`` ``[N, 2]``."""
+        """Index ``[N]`` of the outline pixel nearest to each of ``uv`` ``[N, 2]`` (the outline is not empty)."""
         u = np.clip(np.round(uv[:, 0]).astype(int), 0, self._nearest.shape[1] - 1)
         v = np.clip(np.round(uv[:, 1]).astype(int), 0, self._nearest.shape[0] - 1)
         return self._nearest[v, u]
