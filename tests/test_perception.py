@@ -95,6 +95,23 @@ def test_outline_nearest_matches_brute_force():
     assert np.allclose(np.linalg.norm(found - np.round(uv), axis=-1), brute, atol=0.5)
 
 
+def test_valid_region_is_where_the_view_shows_the_image():
+    view = ViewEvidence(torch.zeros(150, 200), np.zeros((7, 2)), np.ones(7), np.eye(3), np.array([-50.0, 0, 150, 150]),
+                        image_size=(100, 80))  # fmt: skip
+    assert view.valid == (50, 0, 150, 80)
+    assert view.valid_region((100, 75)) == (25, 0, 75, 40)
+    assert ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), np.eye(3), np.zeros(4)).valid == (0, 0, 4, 4)
+
+
+def test_the_image_border_is_no_outline():
+    mask = np.zeros((40, 50), bool)
+    mask[10:25, 12:30] = True
+    cut = Outline(mask, valid=(0, 0, 20, 40))  # the image ends at column 20, inside the mask
+    right = cut.pixels[cut.pixels[:, 0] == 19]  # the last column inside: the square's top and bottom only
+    assert len(cut) and cut.pixels[:, 0].max() == 19 and set(right[:, 1]) == {10, 24}
+    assert len(cut) < len(Outline(mask))
+
+
 # ---- image edges ----------------------------------------------------------------------------------
 
 
@@ -146,6 +163,22 @@ def test_refinement_recovers_the_pose_from_perfect_evidence(models, renderers, s
     robot = models["panda"]
     assert _add(robot, view.joints, start, view.pose) > 0.02
     assert _add(robot, view.joints, refined, view.pose) < 0.002
+
+
+def test_refinement_ignores_what_the_image_border_cuts(models, renderers, sample_view):
+    """The view's right third lies beyond the image (padding: no mask, no pixels): the robot the
+    border cuts is fitted on what the image shows, not pulled to make its silhouette end there."""
+    view = sample_view(models["panda"], np.random.default_rng(3), size=(320, 240), dist=(1.0, 1.8))
+    evidence = _perfect_view(models, renderers, view.joints, view.pose, view.K)
+    width = int(np.nonzero(evidence.mask.numpy().any(0))[0].mean())  # the border through the robot
+    evidence.mask[:, width:] = 0
+    evidence.image[:, width:] = 0
+    evidence.image_size = (width, 240)
+    kp = models["panda"].keypoints(view.joints[None])[0]
+    evidence.confidence[evidence.keypoints[:, 0] >= width] = 0  # the parser cannot see those keypoints
+    start = _moved(view.pose, 5, 3)
+    refined = refine_coarse_to_fine(renderers["panda"], view.joints, start[None], evidence, kp)[0]
+    assert _add(models["panda"], view.joints, refined, view.pose) < 0.015  # 180 mm when the border is an outline
 
 
 def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):

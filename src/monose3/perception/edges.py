@@ -16,7 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from monose3.perception.silhouette import Outline, outline_surface_points
+from monose3.perception.silhouette import Outline, Region, outline_surface_points
 
 EDGE_POINTS = 400  # render outline pixels searched per iteration
 SEARCH_RADIUS = 3.0  # view pixels along the normal, each way
@@ -37,16 +37,18 @@ def outline_normals(mask: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return np.where(norm > 1e-6, -grad / np.maximum(norm, 1e-6), 0.0)
 
 
-def find_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def find_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray,
+               valid: Region | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """For each pixel, the offset along its normal (view pixels, sub-pixel) of the edge of
     ``image`` ``[h, w, 3]`` (float32 in [0, 1]) that it crosses within :data:`SEARCH_RADIUS`
     (the local maximum of colour change that is strongest once weighed by nearness), and that
-    change's size (0 where the search leaves the image)."""
+    change's size (0 where the search leaves ``valid``, x0, y0, x1, y1: by default the image)."""
+    x0, y0, x1, y1 = valid or (0, 0, image.shape[1], image.shape[0])
     steps = np.arange(-SEARCH_RADIUS, SEARCH_RADIUS + SEARCH_STEP / 2, SEARCH_STEP)
     xs = (pixels[:, None, 0] + steps * normals[:, None, 0]).astype(np.float32)
     ys = (pixels[:, None, 1] + steps * normals[:, None, 1]).astype(np.float32)
     profiles = cv2.remap(image, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)  # [N, S, 3]
-    inside = (xs >= 0) & (xs <= image.shape[1] - 1) & (ys >= 0) & (ys <= image.shape[0] - 1)
+    inside = (xs >= x0) & (xs <= x1 - 1) & (ys >= y0) & (ys <= y1 - 1)
     change = np.linalg.norm(profiles[:, 1:] - profiles[:, :-1], axis=-1)  # between samples, at steps + STEP/2
     change[~(inside[:, 1:] & inside[:, :-1])] = 0.0
     # Of the profile's local maxima (the edges it crosses), the strongest once weighed by
@@ -63,12 +65,13 @@ def find_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray) -> tu
     return steps[peak] + SEARCH_STEP * (0.5 + vertex), mid
 
 
-def _edge_pulls(image: np.ndarray, render_mask: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _edge_pulls(image: np.ndarray, render_mask: np.ndarray, pixels: np.ndarray,
+                valid: Region | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """For each of the render's outline ``pixels``: the pixel its silhouette edge should move to
     ``[N, 2]``, and how much that pull counts ``[N]`` in [0, 1] (the edge's strength, capped at
     :data:`STRONG_EDGE`, times a Cauchy of its distance; 0 where there is no edge)."""
     normals = outline_normals(render_mask, pixels)
-    offset, strength = find_edges(image, pixels, normals)
+    offset, strength = find_edges(image, pixels, normals, valid)
     # An outline pixel lies inside the silhouette, whose edge is half a pixel further out: that
     # edge, not the pixel's centre, goes to the image's edge.
     offset = offset - 0.5
@@ -78,22 +81,24 @@ def _edge_pulls(image: np.ndarray, render_mask: np.ndarray, pixels: np.ndarray) 
 
 
 def edge_terms(image: np.ndarray, render_mask: np.ndarray, depth: np.ndarray, pose: np.ndarray, K: np.ndarray,
-               weight: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+               weight: float, rng: np.random.Generator,
+               valid: Region | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """The edges' residual terms for one pose, as :func:`~monose3.perception.silhouette.outline_terms`
     gives the mask's: (surface points in the base frame ``[N, 3]``, the pixels they should project
     to ``[N, 2]``, weights ``[N]`` summing to at most ``weight``), for :data:`EDGE_POINTS` of the
-    render's outline pixels."""
-    rendered = Outline(render_mask)
+    render's outline pixels inside ``valid`` (the view's pixels inside the image)."""
+    rendered = Outline(render_mask, valid)
     if not len(rendered):
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     pixels = rendered.pixels[rng.choice(len(rendered), min(EDGE_POINTS, len(rendered)), replace=False)]
-    goals, pull = _edge_pulls(image, render_mask, pixels)
+    goals, pull = _edge_pulls(image, render_mask, pixels, valid)
     return outline_surface_points(pixels, depth, pose, K), goals, weight * pull / len(pixels)
 
 
-def edge_support(image: np.ndarray, render_mask: np.ndarray) -> float:
+def edge_support(image: np.ndarray, render_mask: np.ndarray, valid: Region | None = None) -> float:
     """How much of the render's outline lies on the image's own edges, in [0, 1]: the mean pull
     weight over all its outline pixels (1: every one on a strong edge within half a pixel or so).
-    Independent of the parser, so a pose fitted to a wrong mask shows here (the ``reliable`` flag)."""
-    rendered = Outline(render_mask)
-    return float(_edge_pulls(image, render_mask, rendered.pixels)[1].mean()) if len(rendered) else 0.0
+    Independent of the parser, so a pose fitted to a wrong mask shows here (the ``reliable`` flag).
+    Only the outline inside ``valid`` counts: the image's border is no edge of the robot."""
+    rendered = Outline(render_mask, valid)
+    return float(_edge_pulls(image, render_mask, rendered.pixels, valid)[1].mean()) if len(rendered) else 0.0

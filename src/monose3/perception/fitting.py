@@ -209,7 +209,7 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     with ``edges`` the image's edges too (step 5; a view without pixels has none)."""
     edges = edges and view.image is not None
     mask_share = MASK_SHARE_WITH_EDGES if edges else 1.0
-    target = Outline((view.mask > MASK_THRESHOLD).numpy())
+    target = Outline((view.mask > MASK_THRESHOLD).numpy(), view.valid)
     rng = np.random.default_rng(0)
     n = len(poses)
     K = torch.from_numpy(view.K)[None].expand(n, 3, 3)
@@ -221,10 +221,11 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
         points, goals, weights = [], [], []
         for mask, depth, pose, kp_w in zip(masks, depths, poses, kp_weights, strict=True):
             terms = [(keypoints_base, view.keypoints, kp_w)]
-            pts, goal, w = outline_terms(target, mask, depth, pose, view.K, OUTLINE_SCALE * view.size[0], rng)
+            scale = OUTLINE_SCALE * view.size[0]
+            pts, goal, w = outline_terms(target, mask, depth, pose, view.K, scale, rng, view.valid)
             terms.append((pts, goal, mask_share * w))
             if edges:
-                terms.append(edge_terms(view.image, mask, depth, pose, view.K, EDGE_WEIGHT, rng))
+                terms.append(edge_terms(view.image, mask, depth, pose, view.K, EDGE_WEIGHT, rng, view.valid))
             points.append(np.concatenate([t[0] for t in terms]))
             goals.append(np.concatenate([t[1] for t in terms]))
             weights.append(np.concatenate([t[2] for t in terms]))
@@ -345,7 +346,7 @@ def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, vie
     errors = keypoint_errors(poses, kp_base, view)
     supports = np.zeros(len(poses))
     if view.image is not None:
-        supports = np.array([edge_support(view.image, mask) for mask in silhouettes.cpu().numpy()])
+        supports = np.array([edge_support(view.image, mask, view.valid) for mask in silhouettes.cpu().numpy()])
     scores = fit_scores(ious, errors, view) + EDGE_SUPPORT_SCORE * supports
     order = np.argsort(-scores)
     best = order[0]

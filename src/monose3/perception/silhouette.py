@@ -21,6 +21,7 @@ OUTLINE_POINTS = 300  # render outline pixels used per iteration
 RENDER_TO_MASK = 25.0
 MASK_TO_RENDER = 25.0
 OUTLINE_SCALE = 0.015  # Cauchy scale of outline residuals, fraction of the view's width
+Region = tuple[int, int, int, int]  # x0, y0, x1, y1: a view's pixels [y0:y1, x0:x1]
 
 
 def render_silhouettes(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
@@ -32,10 +33,13 @@ def render_silhouettes(renderer: RobotRenderer, joints: np.ndarray, poses: np.nd
 
 
 def mask_ious(silhouettes: torch.Tensor, view: ViewEvidence) -> np.ndarray:
-    """IoU ``[H]`` of each silhouette ``[H, h, w]`` with the view's mask, brought to their size."""
+    """IoU ``[H]`` of each silhouette ``[H, h, w]`` with the view's mask, brought to their size,
+    inside the image (:meth:`ViewEvidence.valid_region`: a robot the image cuts is compared where it is seen)."""
     size = silhouettes.shape[-2:]
     mask = F.interpolate(view.mask[None, None], size=tuple(size), mode="bilinear", align_corners=False)[0, 0]
-    mask = (mask > MASK_THRESHOLD).to(silhouettes.device)
+    x0, y0, x1, y1 = view.valid_region((size[1], size[0]))
+    silhouettes = silhouettes[:, y0:y1, x0:x1]
+    mask = (mask[y0:y1, x0:x1] > MASK_THRESHOLD).to(silhouettes.device)
     inter = (silhouettes & mask).flatten(1).sum(1).float()
     union = (silhouettes | mask).flatten(1).sum(1).float().clamp_min(1)
     return (inter / union).cpu().numpy()
@@ -48,11 +52,16 @@ def silhouette_ious(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarr
 
 
 class Outline:
-    """The outline pixels of a binary mask ``[h, w]`` and, for every pixel, the nearest of them."""
+    """The outline pixels of a binary mask ``[h, w]`` and, for every pixel, the nearest of them.
+    With ``valid`` (x0, y0, x1, y1: the view's pixels inside the image), only the outline inside
+    it: where the image's border cuts the mask there is no outline of the robot."""
 
-    def __init__(self, mask: np.ndarray):
-        mask = mask.astype(np.uint8)
-        self._outline = mask - cv2.erode(mask, np.ones((3, 3), np.uint8))
+    def __init__(self, mask: np.ndarray, valid: Region | None = None):
+        x0, y0, x1, y1 = valid or (0, 0, mask.shape[1], mask.shape[0])
+        inner = np.ascontiguousarray(mask[y0:y1, x0:x1], np.uint8)
+        self._outline = np.zeros(mask.shape, np.uint8)
+        # erode's default border leaves the mask's pixels on the region's border uneroded: no outline there
+        self._outline[y0:y1, x0:x1] = inner - cv2.erode(inner, np.ones((3, 3), np.uint8))
         ys, xs = np.nonzero(self._outline)  # raster order, as distanceTransformWithLabels numbers them
         self.pixels = np.stack([xs, ys], -1).astype(np.float64)
 
@@ -87,14 +96,16 @@ def _subsample(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def outline_terms(target: Outline, render_mask: np.ndarray, depth: np.ndarray, pose: np.ndarray, K: np.ndarray,
-                  scale: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+                  scale: float, rng: np.random.Generator,
+                  valid: Region | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """The silhouette's residual terms for one pose: (surface points in the base frame ``[N, 3]``,
     the pixels they should project to ``[N, 2]``, weights ``[N]``), a symmetric chamfer between
     the render's outline and the mask's. Each render outline pixel is pulled to the nearest mask
     outline pixel (weight :data:`RENDER_TO_MASK`: an occluder cuts the mask, not the render, so
     this direction is the less trustworthy one), and each mask outline pixel pulls the nearest
-    render outline pixel (:data:`MASK_TO_RENDER`). Cauchy weights of scale ``scale`` pixels."""
-    rendered = Outline(render_mask)
+    render outline pixel (:data:`MASK_TO_RENDER`). Cauchy weights of scale ``scale`` pixels.
+    The render's outline is taken inside ``valid`` only, as the ``target``'s should be."""
+    rendered = Outline(render_mask, valid)
     if not len(rendered) or not len(target):
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     base = outline_surface_points(rendered.pixels, depth, pose, K)

@@ -30,10 +30,28 @@ class ViewEvidence:
     K: np.ndarray  # [3, 3] the view's intrinsics
     box: np.ndarray  # [4] x1, y1, x2, y2 in the image (edge coordinates)
     image: np.ndarray | None = None  # [h, w, 3] float32 in [0, 1]: the view's pixels (None: no edge terms)
+    image_size: tuple[int, int] | None = None  # (W, H) of the image the view was cut from (None: it fills the view)
 
     @property
     def size(self) -> tuple[int, int]:
         return int(self.mask.shape[1]), int(self.mask.shape[0])
+
+    @property
+    def valid(self) -> tuple[int, int, int, int]:
+        """:meth:`valid_region` at the view's own size."""
+        return self.valid_region(self.size)
+
+    def valid_region(self, size: tuple[int, int]) -> tuple[int, int, int, int]:
+        """The pixels ``[y0:y1, x0:x1]`` (returned as x0, y0, x1, y1) of the view, brought to
+        ``size`` (w, h), that lie wholly inside the image: beyond it the view is padding, where
+        the parser cannot see the robot, so the silhouette and the edges are compared inside only."""
+        w, h = size
+        if self.image_size is None:
+            return 0, 0, w, h
+        scale = np.array([w, h]) / (self.box[2:] - self.box[:2])
+        lo = np.clip(np.ceil(-self.box[:2] * scale - 1e-6), 0, [w, h]).astype(int)
+        hi = np.clip(np.floor((np.array(self.image_size) - self.box[:2]) * scale + 1e-6), lo, [w, h]).astype(int)
+        return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
     @property
     def robot_fraction(self) -> float:
@@ -58,8 +76,9 @@ def parse_view(parser: RobotParser, image: torch.Tensor, K: np.ndarray, box: np.
     uv, conf = decode_keypoints(kp_logits.float())
     K_view = crop_intrinsics(torch.from_numpy(K)[None], torch.from_numpy(box)[None].double(), size)[0].numpy()
     pixels = view[0].permute(1, 2, 0).numpy().astype(np.float32)
+    image_size = (int(image.shape[-1]), int(image.shape[-2]))
     return ViewEvidence(mask[0, 0].float().sigmoid().cpu(), uv[0].cpu().double().numpy(), conf[0].cpu().numpy(),
-                        K_view, np.asarray(box, np.float64), pixels)  # fmt: skip
+                        K_view, np.asarray(box, np.float64), pixels, image_size)  # fmt: skip
 
 
 def full_box(image_size: tuple[int, int], aspect: float) -> np.ndarray:
@@ -95,4 +114,5 @@ def resized_view(view: ViewEvidence, size: tuple[int, int]) -> ViewEvidence:
     scale = np.array(size, float) / np.array(view.size, float)
     keypoints = (view.keypoints + 0.5) * scale - 0.5
     image = None if view.image is None else cv2.resize(view.image, size, interpolation=cv2.INTER_AREA)
-    return ViewEvidence(mask[0, 0], keypoints, view.confidence, scale_K(view.K, view.size, size), view.box, image)
+    K = scale_K(view.K, view.size, size)
+    return ViewEvidence(mask[0, 0], keypoints, view.confidence, K, view.box, image, view.image_size)
