@@ -6,7 +6,7 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
    mask it found, so a small robot is parsed at a useful resolution.
 2. **Hypotheses.** PnP (OpenCV's SQPnP in RANSAC, and on leave-one-out subsets) from the
    keypoints, any poses the caller brings (a prior), and orientations over the sphere placed
-   where the mask is and as large as it is (the fallback when PnP fails).
+   where the mask is and as large as it is (the fallback when PnP fails); ``hypotheses.py``.
 3. **Scoring.** Each hypothesis is rendered (one batch) and scored by its silhouette's IoU with
    the mask, less its keypoint reprojection error.
 4. **Refinement.** The best few are refined by damped Gauss-Newton on the keypoints' reprojection
@@ -17,6 +17,8 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
    differentiable renderer or a derivative-free search: our rasteriser is exact but not
    differentiable, and correspondences make each iteration one render and a 6x6 solve, where a
    derivative-free search needs dozens of renders per step for the same precision.
+   Everything is compared inside the image only (``ViewEvidence.valid_region``): where the
+   image's border cuts the robot, the mask ends but the robot does not.
 5. **Edges.** At the view's resolution the render's outline is also pulled onto the image's
    own edges (``perception/edges.py``), with the mask's terms weighted down: the coarse pass on
    the mask brought the fit into its basin, the edges give it sub-pixel precision.
@@ -32,15 +34,15 @@ import math
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 import torch
 
 from monose3.geometry.camera import project
-from monose3.geometry.poses import make_pose, transform_points
+from monose3.geometry.poses import transform_points
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.flow_pose import solve_pose
 from monose3.perception.edges import edge_support, edge_terms
+from monose3.perception.hypotheses import pnp_hypotheses, sphere_hypotheses
 from monose3.perception.parser import RobotParser
 from monose3.perception.silhouette import (
     OUTLINE_SCALE,
@@ -64,8 +66,6 @@ from monose3.perception.views import (
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 
-MIN_KEYPOINT_CONFIDENCE = 0.2
-PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view's width
 SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
 KEEP_HYPOTHESES = 2  # refined per image
 COARSE_ITERATIONS = 12  # refinement at SCORE_SIZE, on the mask
@@ -82,7 +82,6 @@ EDGE_SUPPORT_SCORE = 0.5
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
 KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
 CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
-SPHERE_AZIMUTHS, SPHERE_ELEVATIONS = 8, (10.0, 45.0)  # a fallback: PnP from the keypoints wins when it works
 # The fit flags an estimate unreliable when its silhouette fits the mask poorly, its outline
 # misses the image's edges (a fit to a wrong mask), or the refined hypotheses ended apart; or
 # when less than MIN_INSIDE of the robot lies in the image (too little to fit to). Chosen on
@@ -121,68 +120,6 @@ class Fit:
         if self.spread_mm > RELIABLE_SPREAD_MM:
             reasons.append(f"hypotheses {self.spread_mm:.0f} mm apart")
         return reasons
-
-
-def pnp_hypotheses(view: ViewEvidence, keypoints_base: np.ndarray) -> list[np.ndarray]:
-    """Camera-from-base poses from the confident keypoints: RANSAC + SQPnP, refined by LM on
-    its inliers, and SQPnP on all confident keypoints."""
-    good = view.confidence >= MIN_KEYPOINT_CONFIDENCE
-    if good.sum() < 4:
-        return []
-    obj, img = keypoints_base[good].astype(np.float64), view.keypoints[good].astype(np.float64)
-    poses = []
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        obj, img, view.K, None, reprojectionError=PNP_ERROR_FRACTION * view.size[0], flags=cv2.SOLVEPNP_SQPNP
-    )
-    if ok and inliers is not None and len(inliers) >= 4:
-        idx = inliers[:, 0]
-        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], view.K, None, rvec, tvec)
-        poses.append(_pose(rvec, tvec))
-    subsets = [np.ones(len(obj), bool)]
-    if len(obj) > 4:  # each keypoint left out in turn: one wrong keypoint then spoils one subset only
-        subsets += [np.arange(len(obj)) != i for i in range(len(obj))]
-    for keep in subsets:
-        ok, rvec, tvec = cv2.solvePnP(obj[keep], img[keep], view.K, None, flags=cv2.SOLVEPNP_SQPNP)
-        if ok:
-            poses.append(_pose(rvec, tvec))
-    return [p for p in poses if np.isfinite(p).all() and p[2, 3] > 0.05]
-
-
-def _pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    return make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
-
-
-def sphere_hypotheses(view: ViewEvidence, surface_base: np.ndarray) -> list[np.ndarray]:
-    """Orientations over the sphere (the camera looking at the robot from azimuths x elevations),
-    each placed so the robot's centroid projects to the mask's centroid at the depth where its
-    projected extent matches the mask's."""
-    ys, xs = np.nonzero((view.mask > MASK_THRESHOLD).numpy())
-    if not len(xs):
-        return []
-    centre = np.array([xs.mean(), ys.mean()])
-    extent = max(xs.max() - xs.min(), ys.max() - ys.min()) + 1
-    centroid = surface_base.mean(0)
-    f = (view.K[0, 0] + view.K[1, 1]) / 2
-    ray = np.array([(centre[0] - view.K[0, 2]) / view.K[0, 0], (centre[1] - view.K[1, 2]) / view.K[1, 1], 1.0])
-    poses = []
-    for elevation in SPHERE_ELEVATIONS:
-        for i in range(SPHERE_AZIMUTHS):
-            az, el = 2 * math.pi * i / SPHERE_AZIMUTHS, math.radians(elevation)
-            eye = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-            rot = _look_at(eye)
-            pts = (surface_base - centroid) @ rot.T
-            size = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1]))
-            depth = f * size / extent
-            poses.append(make_pose(rot, ray * depth - rot @ centroid))
-    return poses
-
-
-def _look_at(eye: np.ndarray) -> np.ndarray:
-    """Camera-from-world rotation (OpenCV axes) of a camera at ``eye`` looking at the origin, z up."""
-    z = -eye / np.linalg.norm(eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
-    return np.stack([x, np.cross(z, x), z])
 
 
 def keypoint_distances(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:

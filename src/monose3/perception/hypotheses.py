@@ -1,0 +1,79 @@
+"""Pose hypotheses from the parser's evidence: PnP from the keypoints, and orientations over
+the sphere placed where the mask is and as large as it is (the fallback when PnP fails).
+``perception/fitting.py`` scores and refines them."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from monose3.geometry.poses import make_pose
+from monose3.perception.views import MASK_THRESHOLD, ViewEvidence
+
+MIN_KEYPOINT_CONFIDENCE = 0.2
+PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view's width
+SPHERE_AZIMUTHS, SPHERE_ELEVATIONS = 8, (10.0, 45.0)  # a fallback: PnP from the keypoints wins when it works
+
+
+def pnp_hypotheses(view: ViewEvidence, keypoints_base: np.ndarray) -> list[np.ndarray]:
+    """Camera-from-base poses from the confident keypoints: RANSAC + SQPnP, refined by LM on
+    its inliers, and SQPnP on all confident keypoints."""
+    good = view.confidence >= MIN_KEYPOINT_CONFIDENCE
+    if good.sum() < 4:
+        return []
+    obj, img = keypoints_base[good].astype(np.float64), view.keypoints[good].astype(np.float64)
+    poses = []
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        obj, img, view.K, None, reprojectionError=PNP_ERROR_FRACTION * view.size[0], flags=cv2.SOLVEPNP_SQPNP
+    )
+    if ok and inliers is not None and len(inliers) >= 4:
+        idx = inliers[:, 0]
+        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], view.K, None, rvec, tvec)
+        poses.append(_pose(rvec, tvec))
+    subsets = [np.ones(len(obj), bool)]
+    if len(obj) > 4:  # each keypoint left out in turn: one wrong keypoint then spoils one subset only
+        subsets += [np.arange(len(obj)) != i for i in range(len(obj))]
+    for keep in subsets:
+        ok, rvec, tvec = cv2.solvePnP(obj[keep], img[keep], view.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if ok:
+            poses.append(_pose(rvec, tvec))
+    return [p for p in poses if np.isfinite(p).all() and p[2, 3] > 0.05]
+
+
+def _pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    return make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+
+
+def sphere_hypotheses(view: ViewEvidence, surface_base: np.ndarray) -> list[np.ndarray]:
+    """Orientations over the sphere (the camera looking at the robot from azimuths x elevations),
+    each placed so the robot's centroid projects to the mask's centroid at the depth where its
+    projected extent matches the mask's."""
+    ys, xs = np.nonzero((view.mask > MASK_THRESHOLD).numpy())
+    if not len(xs):
+        return []
+    centre = np.array([xs.mean(), ys.mean()])
+    extent = max(xs.max() - xs.min(), ys.max() - ys.min()) + 1
+    centroid = surface_base.mean(0)
+    f = (view.K[0, 0] + view.K[1, 1]) / 2
+    ray = np.array([(centre[0] - view.K[0, 2]) / view.K[0, 0], (centre[1] - view.K[1, 2]) / view.K[1, 1], 1.0])
+    poses = []
+    for elevation in SPHERE_ELEVATIONS:
+        for i in range(SPHERE_AZIMUTHS):
+            az, el = 2 * math.pi * i / SPHERE_AZIMUTHS, math.radians(elevation)
+            eye = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+            rot = _look_at(eye)
+            pts = (surface_base - centroid) @ rot.T
+            size = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1]))
+            depth = f * size / extent
+            poses.append(make_pose(rot, ray * depth - rot @ centroid))
+    return poses
+
+
+def _look_at(eye: np.ndarray) -> np.ndarray:
+    """Camera-from-world rotation (OpenCV axes) of a camera at ``eye`` looking at the origin, z up."""
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    return np.stack([x, np.cross(z, x), z])
