@@ -108,5 +108,6 @@ def test_fit_records_say_whether_each_estimate_is_reliable_and_why(tiny_dream):
     finally:
         est.close()
     for rec in result.frames:
-        assert {"silhouette_iou", "edge_support", "reliable", "doubts"} <= set(rec)
+        assert {"silhouette_iou", "edge_support", "edge_distance_px", "reliable", "doubts"} <= set(rec)
         assert rec["reliable"] == (rec["in_view"] and not rec["doubts"]) and 0 <= rec["edge_support"] <= 1
+        assert rec["edge_distance_px"] is None or rec["edge_distance_px"] >= 0

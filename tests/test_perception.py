@@ -186,7 +186,7 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
     fit = fit_pose(parser, renderers["panda"], models["panda"], image, K, joints)
     assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "score"}
-    assert 0.5 < fit.edge_support <= 1 and 0 <= fit.spread_mm < 5
+    assert 0.5 < fit.edge_support <= 1 and 0 < fit.edge_distance_px < 0.8 and 0 <= fit.spread_mm < 5
     tracked = track_pose(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 3, 2))
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
 
@@ -236,16 +236,19 @@ def test_a_good_fit_is_reliable_and_says_what_it_read(sample):
         estimator.close()
     data = result.to_dict()
     assert result.reliable and result.doubts == [] and data["doubts"] == []
-    assert 0.5 < data["edge_support"] <= 1 and result.overlay_label == result.confidence_text
+    assert 0.5 < data["edge_support"] <= 1 and 0 < data["edge_distance_px"] < 0.8
+    assert result.overlay_label == result.confidence_text
 
 
 def test_fit_doubts_name_each_failed_check(sample):
     view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), sample[1], np.array([0.0, 0, 4, 4]))
-    fit = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None], edge_support=0.8, spread_mm=1.0)
+    fit = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None], edge_support=0.8, edge_distance_px=0.5)
     assert fit.doubts() == []
-    doubted = Fit(np.eye(4), 0.5, 1.0, 0.4, view, np.eye(4)[None], edge_support=0.2, spread_mm=12.0)
+    doubted = Fit(np.eye(4), 0.5, 1.0, 0.4, view, np.eye(4)[None], edge_support=0.2, edge_distance_px=1.3)
     reasons = doubted.doubts()
-    assert len(reasons) == 3 and "IoU 0.50" in reasons[0] and "edges 0.20" in reasons[1] and "12 mm" in reasons[2]
+    assert len(reasons) == 2 and "IoU 0.50" in reasons[0] and "1.30 px off the image's edges" in reasons[1]
+    no_edges = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None])  # a flat image: nothing confirms the outline
+    assert no_edges.doubts() == ["no image edge along the outline"]
     assert not_found(view).doubts() == ["the robot was not found"]
 
 

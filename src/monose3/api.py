@@ -76,6 +76,12 @@ class PoseResult:
         return None if self.estimate.edge_support is None else float(self.estimate.edge_support[0])
 
     @property
+    def edge_distance_px(self) -> float | None:
+        """The "fit" sampler's RMS distance (parser-view pixels) of the estimate's outline to the
+        image's edges (inf: none along it); None otherwise."""
+        return None if self.estimate.edge_distance_px is None else float(self.estimate.edge_distance_px[0])
+
+    @property
     def doubts(self) -> list[str]:
         """Why the estimate is unreliable, in words (empty when it is reliable or there is nothing to judge by)."""
         if self.estimate.doubts is not None:
@@ -85,7 +91,7 @@ class PoseResult:
     @property
     def reliable(self) -> bool | None:
         """ "fit": whether the fit can be trusted: the silhouette fits the mask, its outline lies
-        on the image's edges, the refined hypotheses agree, and most of the robot is in the image
+        on the image's edges, and most of the robot is in the image
         (``perception.fitting.RELIABLE_*``; :attr:`doubts` says which failed). The paper's
         samplers: whether the chains agree within ``UNRELIABLE_MM``; None with one chain (nothing
         to compare)."""
@@ -126,6 +132,7 @@ class PoseResult:
             "sampler": self.sampler,
             "silhouette_iou": self.fit_iou,
             "edge_support": self.edge_support,
+            "edge_distance_px": _finite_or_none(self.edge_distance_px),
             "doubts": self.doubts,
             "chain_spread_mm": _finite_or_none(self.spread_mm) if self.chains > 1 else None,
             "chain_spread_deg": _finite_or_none(self.spread_deg) if self.chains > 1 else None,
@@ -133,8 +140,8 @@ class PoseResult:
         }
 
 
-def _finite_or_none(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None
+def _finite_or_none(value: float | None) -> float | None:
+    return float(value) if value is not None and np.isfinite(value) else None
 
 
 def estimate_pose(
@@ -234,7 +241,8 @@ def format_pose(result: PoseResult) -> str:
     fmt = lambda m: "\n".join("  [" + ", ".join(f"{v: .6f}" for v in row) + "]" for row in m)  # noqa: E731
     if result.fit_iou is not None:
         rel = "reliable" if result.reliable else f"UNRELIABLE ({'; '.join(result.doubts)})"
-        how = f"silhouette IoU {result.fit_iou:.3f}, outline on edges {result.edge_support:.2f}, {rel}"
+        edges = f"outline {result.edge_distance_px:.2f} px from the image's edges ({result.edge_support:.2f} on them)"
+        how = f"silhouette IoU {result.fit_iou:.3f}, {edges}, {rel}"
     elif result.reliable is None:
         how = "a single chain has no spread, so no confidence (use --chains 2 or more for one)"
     else:

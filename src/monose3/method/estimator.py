@@ -62,6 +62,7 @@ class Estimate:
     found: np.ndarray | None = None  # [B] bool: the parser found the robot (else the pose is NaN)
     reliable: np.ndarray | None = None  # [B] bool: the fit is good and the robot mostly in the image
     edge_support: np.ndarray | None = None  # [B] share of the estimate's outline on the image's edges
+    edge_distance_px: np.ndarray | None = None  # [B] RMS distance of that outline to the edges, parser-view pixels
     doubts: list[list[str]] | None = None  # [B] why each estimate is unreliable, in words (empty: reliable)
 
 
@@ -281,6 +282,7 @@ class PoseEstimator:
             found=found,
             reliable=in_view & np.array([not reasons for reasons in doubts]),
             edge_support=np.array([f.edge_support for f in fits]),
+            edge_distance_px=np.array([f.edge_distance_px for f in fits]),
             doubts=doubts,
         )
 

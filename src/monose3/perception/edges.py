@@ -13,6 +13,8 @@ the edges are weak and weigh little, and the mask decides.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -95,10 +97,18 @@ def edge_terms(image: np.ndarray, render_mask: np.ndarray, depth: np.ndarray, po
     return outline_surface_points(pixels, depth, pose, K), goals, weight * pull / len(pixels)
 
 
-def edge_support(image: np.ndarray, render_mask: np.ndarray, valid: Region | None = None) -> float:
-    """How much of the render's outline lies on the image's own edges, in [0, 1]: the mean pull
-    weight over all its outline pixels (1: every one on a strong edge within half a pixel or so).
-    Independent of the parser, so a pose fitted to a wrong mask shows here (the ``reliable`` flag).
-    Only the outline inside ``valid`` counts: the image's border is no edge of the robot."""
+def edge_agreement(image: np.ndarray, render_mask: np.ndarray, valid: Region | None = None) -> tuple[float, float]:
+    """How well the render's outline lies on the image's own edges, over all its outline pixels:
+    (support, distance). Support in [0, 1] is the mean pull weight (1: every pixel on a strong
+    edge within half a pixel or so); distance is the pulls' weighted RMS length in view pixels
+    (inf: no edge along the outline). Independent of the parser, so a pose fitted to a wrong mask
+    shows here (the ``reliable`` flag reads the distance). Only the outline inside ``valid``
+    counts: the image's border is no edge of the robot."""
     rendered = Outline(render_mask, valid)
-    return float(_edge_pulls(image, render_mask, rendered.pixels, valid)[1].mean()) if len(rendered) else 0.0
+    if not len(rendered):
+        return 0.0, math.inf
+    goals, weight = _edge_pulls(image, render_mask, rendered.pixels, valid)
+    if weight.sum() <= 0:
+        return 0.0, math.inf
+    squared = ((goals - rendered.pixels) ** 2).sum(-1)
+    return float(weight.mean()), float(np.sqrt((weight * squared).sum() / weight.sum()))

@@ -127,6 +127,7 @@ def frame_record(frame, add: float, est: Estimate, j: int, step: TrackStep | Non
     if est.fit_iou is not None:
         record.update(silhouette_iou=float(est.fit_iou[j]), keypoint_px=float(est.keypoint_px[j]),
                       edge_support=float(est.edge_support[j]), reliable=bool(est.reliable[j]),
+                      edge_distance_px=float(est.edge_distance_px[j]) if np.isfinite(est.edge_distance_px[j]) else None,
                       doubts=est.doubts[j])  # fmt: skip
     if step is not None:
         record.update(mode=step.mode, reason=step.reason)
