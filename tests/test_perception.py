@@ -191,6 +191,21 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
 
 
+def test_a_lost_track_is_found_again(parser, renderers, models, sample, monkeypatch):
+    """From a previous pose 30 deg / 15 cm off, the refinement alone ends in doubt, far away;
+    the re-detection it then runs (the view's PnP hypothesis) brings the track back."""
+    image, K = sample
+    joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
+    args = (parser, renderers["panda"], models["panda"], image, K, joints)
+    fit = fit_pose(*args)
+    start = _moved(fit.pose, 30, 15)
+    found = track_pose(*args, start)
+    assert _add(models["panda"], joints, found.pose, fit.pose) < 0.01 and not found.doubts()
+    monkeypatch.setattr("monose3.perception.fitting.pnp_hypotheses", lambda *_: [])
+    lost = track_pose(*args, start)
+    assert _add(models["panda"], joints, lost.pose, fit.pose) > 0.1 and lost.doubts()
+
+
 def test_no_robot_in_the_image_is_not_a_pose(sample, tmp_path, capsys):
     image, K = sample
     empty = np.clip(image.astype(float).mean((0, 1)) + np.zeros_like(image, float), 0, 255).astype(np.uint8)

@@ -25,7 +25,7 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
 
 The reported pose is the refined hypothesis with the best final fit (IoU, keypoint residual,
 the outline's support by the image's edges); the IoU is the confidence, and the flag reads the
-edge support and the refined hypotheses' agreement too (:meth:`Fit.doubts`).
+outline's distance to the image's edges too (:meth:`Fit.doubts`).
 """
 
 from __future__ import annotations
@@ -262,10 +262,7 @@ def fit_pose(
         hyps += sphere_hypotheses(view, robot.surface_points(joints[None])[0])
     if not hyps:
         return not_found(view)
-    poses = np.stack(hyps)
-    ious = silhouette_ious(renderer, joints, poses, view, SCORE_SIZE)
-    scores = fit_scores(ious, keypoint_errors(poses, kp_base, view), view)
-    poses = poses[np.argsort(-scores)[:KEEP_HYPOTHESES]]
+    poses = best_hypotheses(renderer, joints, np.stack(hyps), view, kp_base, KEEP_HYPOTHESES)
     clock.lap("search")
     if refine:
         poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base, edges=edges)
@@ -274,6 +271,13 @@ def fit_pose(
     clock.lap("score")
     fit.timings = clock.laps
     return fit
+
+
+def best_hypotheses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                    kp_base: np.ndarray, keep: int) -> np.ndarray:  # fmt: skip
+    """The ``keep`` best of ``poses`` ``[H, 4, 4]`` by silhouette IoU at :data:`SCORE_SIZE` less the keypoint term."""
+    ious = silhouette_ious(renderer, joints, poses, view, SCORE_SIZE)
+    return poses[np.argsort(-fit_scores(ious, keypoint_errors(poses, kp_base, view), view))[:keep]]
 
 
 def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
@@ -323,7 +327,9 @@ def track_pose(
     iterations: tuple[int, int] = TRACK_ITERATIONS,
 ) -> Fit:
     """Tracking: the refinement's (coarse, fine) ``iterations`` from the previous pose, in one
-    parser view around where that pose puts the robot's surface."""
+    parser view around where that pose puts the robot's surface. When the result's fit is in
+    doubt (:meth:`Fit.doubts`: the track may be lost), the view's best PnP hypothesis is refined
+    alike and the better fit wins: a re-detection that costs nothing while the track holds."""
     size = parser.config.input_size
     aspect = size[0] / size[1]
     whole = full_box((image.shape[1], image.shape[0]), aspect)
@@ -337,4 +343,10 @@ def track_pose(
         return not_found(view)
     kp_base = robot.keypoints(joints[None])[0]
     poses = refine_coarse_to_fine(renderer, joints, previous[None], view, kp_base, *iterations)
-    return best_fit(renderer, joints, poses, view, kp_base)
+    fit = best_fit(renderer, joints, poses, view, kp_base)
+    found = pnp_hypotheses(view, kp_base) if fit.doubts() else []
+    if found:
+        found = best_hypotheses(renderer, joints, np.stack(found), view, kp_base, 1)
+        poses = np.concatenate([poses, refine_coarse_to_fine(renderer, joints, found, view, kp_base, *iterations)])
+        fit = best_fit(renderer, joints, poses, view, kp_base)
+    return fit
