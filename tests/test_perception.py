@@ -192,8 +192,8 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
 
 
 def test_a_lost_track_is_found_again(parser, renderers, models, sample, monkeypatch):
-    """From a previous pose 30 deg / 15 cm off, the refinement alone ends in doubt, far away;
-    the re-detection it then runs (the view's PnP hypothesis) brings the track back."""
+    """From a previous pose 30 deg / 15 cm off, the refinement alone ends far away with a poor
+    IoU; the re-detection it then runs (the view's PnP hypothesis) brings the track back."""
     image, K = sample
     joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
     args = (parser, renderers["panda"], models["panda"], image, K, joints)
