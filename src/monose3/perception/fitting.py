@@ -150,6 +150,7 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     edges = edges and view.image is not None
     mask_share = MASK_SHARE_WITH_EDGES if edges else 1.0
     target = Outline((view.mask > MASK_THRESHOLD).numpy(), view.valid)
+    scale = OUTLINE_SCALE * view.size[0]
     rng = np.random.default_rng(0)
     n = len(poses)
     K = torch.from_numpy(view.K)[None].expand(n, 3, 3)
@@ -161,7 +162,6 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
         points, goals, weights = [], [], []
         for mask, depth, pose, kp_w in zip(masks, depths, poses, kp_weights, strict=True):
             terms = [(keypoints_base, view.keypoints, kp_w)]
-            scale = OUTLINE_SCALE * view.size[0]
             pts, goal, w = outline_terms(target, mask, depth, pose, view.K, scale, rng, view.valid)
             terms.append((pts, goal, mask_share * w))
             if edges:
