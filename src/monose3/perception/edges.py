@@ -18,7 +18,8 @@ import math
 import cv2
 import numpy as np
 
-from monose3.perception.silhouette import Outline, Region, outline_surface_points
+from monose3.perception.silhouette import Outline, outline_surface_points
+from monose3.perception.views import Region
 
 EDGE_POINTS = 400  # render outline pixels searched per iteration
 SEARCH_RADIUS = 3.0  # view pixels along the normal, each way

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from monose3.geometry.camera import scale_K
-from monose3.perception.views import MASK_THRESHOLD, ViewEvidence
+from monose3.perception.views import MASK_THRESHOLD, Region, ViewEvidence
 from monose3.robot.renderer import RobotRenderer
 
 OUTLINE_POINTS = 300  # render outline pixels used per iteration
@@ -21,7 +21,6 @@ OUTLINE_POINTS = 300  # render outline pixels used per iteration
 RENDER_TO_MASK = 25.0
 MASK_TO_RENDER = 25.0
 OUTLINE_SCALE = 0.015  # Cauchy scale of outline residuals, fraction of the view's width
-Region = tuple[int, int, int, int]  # x0, y0, x1, y1: a view's pixels [y0:y1, x0:x1]
 
 
 def render_silhouettes(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,

@@ -19,6 +19,8 @@ MIN_MASK_FRACTION = 2e-4  # of the view's pixels: fewer robot pixels than this i
 ZOOM_MARGIN = 1.3  # the zoomed view spans the mask's box grown by this factor
 ZOOM_MAX_FRACTION = 0.7  # zoom only when the mask's box is smaller than this fraction of the view
 
+Region = tuple[int, int, int, int]  # x0, y0, x1, y1: a view's pixels [y0:y1, x0:x1]
+
 
 @dataclass
 class ViewEvidence:
@@ -37,11 +39,11 @@ class ViewEvidence:
         return int(self.mask.shape[1]), int(self.mask.shape[0])
 
     @property
-    def valid(self) -> tuple[int, int, int, int]:
+    def valid(self) -> Region:
         """:meth:`valid_region` at the view's own size."""
         return self.valid_region(self.size)
 
-    def valid_region(self, size: tuple[int, int]) -> tuple[int, int, int, int]:
+    def valid_region(self, size: tuple[int, int]) -> Region:
         """The pixels ``[y0:y1, x0:x1]`` (returned as x0, y0, x1, y1) of the view, brought to
         ``size`` (w, h), that lie wholly inside the image: beyond it the view is padding, where
         the parser cannot see the robot, so the silhouette and the edges are compared inside only."""
