@@ -157,7 +157,7 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     for _ in range(iterations):
         kp_dist = keypoint_distances(poses, keypoints_base, view)
         kp_weights = view.confidence / (1 + (kp_dist / (KEYPOINT_SCALE * view.size[0])) ** 2)
-        rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, view.size)
+        rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, view.size, shade=False)
         masks, depths = rendered.mask.cpu().numpy(), rendered.depth.cpu().numpy()
         points, goals, weights = [], [], []
         for mask, depth, pose, kp_w in zip(masks, depths, poses, kp_weights, strict=True):
@@ -325,14 +325,14 @@ def track_pose(
     joints: np.ndarray,
     previous: np.ndarray,
     iterations: tuple[int, int] = TRACK_ITERATIONS,
+    detect: bool = True,
 ) -> Fit:
-    """Tracking: the refinement's (coarse, fine) ``iterations`` from the previous pose, in one
-    parser view around where that pose puts the robot's surface. When the result's silhouette
-    fits the mask poorly (IoU < :data:`RELIABLE_IOU`: the track is lost), the view's best PnP
-    hypothesis, if it scores better, is refined alike and the better fit wins: a re-detection
-    that costs nothing while the track holds. (Re-detecting on any doubt, the edges' too, made
-    more refinements end closer, held-out hard 88 -> 90 %, but halved the tracking speed: the
-    edges doubt many a track that 4 + 4 iterations have not finished.)"""
+    """Tracking: the refinement's (coarse, fine) ``iterations`` in one parser view around where
+    the ``previous`` pose puts the robot's surface. With ``detect``, the refinement starts from
+    the better of ``previous`` and the view's PnP hypotheses, scored as the search scores them
+    (a few small renders): between frames the robot can move further than a few iterations
+    reach, and a lost track is found again. Without, it starts from ``previous`` alone: the
+    refinement by itself, as ``benchmarks/accuracy.py`` measures it."""
     size = parser.config.input_size
     aspect = size[0] / size[1]
     whole = full_box((image.shape[1], image.shape[0]), aspect)
@@ -345,13 +345,7 @@ def track_pose(
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
     kp_base = robot.keypoints(joints[None])[0]
-    poses = refine_coarse_to_fine(renderer, joints, previous[None], view, kp_base, *iterations)
-    fit = best_fit(renderer, joints, poses, view, kp_base)
-    found = pnp_hypotheses(view, kp_base) if fit.iou < RELIABLE_IOU else []
-    if found:
-        # only a hypothesis that already scores better than the tracked pose is worth refining
-        found = best_hypotheses(renderer, joints, np.stack([*found, fit.pose]), view, kp_base, 1)
-        if not np.array_equal(found[0], fit.pose):
-            poses = np.concatenate([poses, refine_coarse_to_fine(renderer, joints, found, view, kp_base, *iterations)])
-            fit = best_fit(renderer, joints, poses, view, kp_base)
-    return fit
+    starts = [previous, *pnp_hypotheses(view, kp_base)] if detect else [previous]
+    start = best_hypotheses(renderer, joints, np.stack(starts), view, kp_base, 1) if len(starts) > 1 else previous[None]
+    poses = refine_coarse_to_fine(renderer, joints, start, view, kp_base, *iterations)
+    return best_fit(renderer, joints, poses, view, kp_base)
