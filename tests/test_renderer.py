@@ -179,6 +179,15 @@ def test_lighting_and_colour_scale_change_colour_not_mask(models, renderers, sam
     assert red.rgb[0][1, m].mean() < 0.5 * base.rgb[0][1, m].mean()
 
 
+def test_unshaded_renders_the_same_silhouette_and_depth(models, renderers, sample_view):
+    """``shade=False`` (the fit's renders) leaves the colours out, and nothing else."""
+    view = sample_view(models["panda"], np.random.default_rng(14))
+    args = (view.joints[None], view.pose[None], view.K[None], view.size)
+    shaded, bare = renderers["panda"].render(*args), renderers["panda"].render(*args, shade=False)
+    assert bare.rgb is None and bare.mask.any()
+    assert torch.equal(shaded.mask, bare.mask) and torch.equal(shaded.depth, bare.depth)
+
+
 def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeypatch):
     renderer = RobotRenderer(models["panda"])
     views = [sample_view(models["panda"], np.random.default_rng(40 + i)) for i in range(4)]
@@ -198,6 +207,8 @@ def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeyp
     assert calls[0] == 4 and calls.count(1) == 4
     assert torch.equal(got.mask, expected.mask)
     torch.testing.assert_close(got.rgb, expected.rgb)
+    bare = renderer.render(*args, shade=False)
+    assert bare.rgb is None and torch.equal(bare.mask, expected.mask)
 
 
 @pytest.mark.parametrize(
