@@ -51,6 +51,7 @@ def test_training_writes_shards_continues_and_exports(tmp_path):
         ([], "budget"),
         (["--steps", "1", "--preset", "huge"], "unknown parser preset"),
         (["--minutes", "-1"], "positive"),
+        (["--steps", "1", "--lr", "0"], "--lr must be positive"),
     ],
 )
 def test_train_parser_refuses_bad_options_in_one_line(tmp_path, capsys, extra, needle):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 from monose3.apps.arguments import (
@@ -21,6 +22,7 @@ def add_train_parser_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, help="stop at this optimiser step")
     p.add_argument("--init", help="continue from a parser's shards or file (a fresh optimiser and warm-up)")
     p.add_argument("--anneal", action="store_true", help="cosine learning-rate decay to zero over the budget")
+    p.add_argument("--lr", type=float, help="peak learning rate (default: the preset's; lower it to fine-tune)")
     p.add_argument("--workers", type=int, default=0, help="data-loader workers per scene profile (default 0)")
     p.add_argument(
         "--backgrounds", help="folder of photographs for backgrounds (default: scikit-image's, if installed)"
@@ -37,6 +39,8 @@ def check_train_parser(args: argparse.Namespace) -> None:
         raise Monose3Error(f"--minutes must be positive, got {args.minutes}")
     if args.steps is not None:
         v.check_count(args.steps, "--steps")
+    if args.lr is not None and not args.lr > 0:
+        raise Monose3Error(f"--lr must be positive, got {args.lr}")
     check_non_negative(args.workers, "--workers")
     if args.threads is not None:
         v.check_count(args.threads, "--threads")
@@ -56,7 +60,7 @@ def run_train_parser(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     meta = train_parser(
-        PARSER_PRESETS[args.preset],
+        replace(PARSER_PRESETS[args.preset], **({"lr": args.lr} if args.lr else {})),
         args.out,
         minutes=args.minutes,
         steps=args.steps,
