@@ -133,6 +133,20 @@ def test_estimate_out_of_the_image_is_flagged(zero_estimator, frames):
     assert zero_estimator.track(images, Ks, joints, frames[0].pose[None]).in_view[0]
 
 
+@pytest.mark.parametrize("sampler", ["revdiff", "fit"])
+def test_tracking_refuses_previous_poses_it_cannot_start_from(zero_estimator, frames, sampler):
+    """Checked before any work, on either sampler (a NaN pose reached the renderer before)."""
+    images, Ks, joints = _inputs(frames, 1)
+    bent = frames[0].pose.copy()
+    bent[:3, :3] *= 2.0
+    cases = [(np.full((1, 4, 4), np.nan), "previous pose 0: the pose contains NaN"),
+             (bent[None], "previous pose 0: the pose is not a rigid transform"),
+             (frames[0].pose, r"previous pose must be \[1, 4, 4\]")]  # fmt: skip
+    for previous, needle in cases:
+        with pytest.raises(Monose3Error, match=needle):
+            zero_estimator.track(images, Ks, joints, previous, sampler=sampler)
+
+
 def test_chains_from_a_low_start_spread_less(zero_estimator, frames):
     """Chains refining a prior from a small t start as close together as that t's noise allows."""
     images, Ks, joints = _inputs(frames, 1)

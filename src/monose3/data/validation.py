@@ -263,6 +263,14 @@ def check_batch(
     return images, Ks, check_joint_batch(joints, robot, len(images))
 
 
+def check_pose_batch(poses: Any, n: int, name: str) -> np.ndarray:
+    """``[n, 4, 4]`` camera-from-base poses (e.g. tracking's previous estimates), each finite and rigid."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape != (n, 4, 4):
+        raise Monose3Error(f"{name} must be [{n}, 4, 4] (one camera-from-base pose per image), got shape {poses.shape}")
+    return np.stack([pose_from_obj(p, f"{name} {i}") for i, p in enumerate(poses)])
+
+
 # ---- output paths ------------------------------------------------------------------------------
 
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from monose3.data.validation import check_batch
+from monose3.data.validation import check_batch, check_pose_batch
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import project, standardize_image
 from monose3.geometry.poses import make_pose
@@ -292,9 +292,10 @@ class PoseEstimator:
     ) -> Estimate:  # fmt: skip
         """Tracking: from the previous estimates, the paper's one step at a small t
         (``sampler`` 'revdiff'), or a few refinement iterations on a parser view around them ('fit')."""
+        images, Ks, joints = check_batch(images, Ks, joints, self.robot)
+        previous = check_pose_batch(previous, len(images), "previous pose")
         if (sampler or self.default_sampler) == "fit":
-            images, Ks, joints = check_batch(images, Ks, joints, self.robot)
-            return self.fit(images, Ks, joints, np.asarray(previous, np.float64), track=True)
+            return self.fit(images, Ks, joints, previous, track=True)
         return self.estimate(
             images,
             Ks,
