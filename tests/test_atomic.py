@@ -1,10 +1,13 @@
 """atomic: an output file is the old one or the new one, never a partial one."""
 
+import json
+import math
 import os
 
+import numpy as np
 import pytest
 
-from monose3.atomic import atomic_path, write_bytes, write_text
+from monose3.atomic import atomic_path, json_number, write_bytes, write_text
 
 
 def test_write_replaces_and_creates_folders(tmp_path):
@@ -35,3 +38,10 @@ def test_the_temporary_file_keeps_the_extension_and_the_umask_mode(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_json_number_turns_missing_and_non_finite_values_into_none():
+    assert [json_number(v) for v in (None, math.nan, math.inf, -math.inf)] == [None] * 4
+    value = json_number(np.float32(1.5))
+    assert value == 1.5 and type(value) is float
+    json.dumps([json_number(v) for v in (np.float64(2.0), math.nan)], allow_nan=False)

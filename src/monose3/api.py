@@ -132,16 +132,12 @@ class PoseResult:
             "sampler": self.sampler,
             "silhouette_iou": self.fit_iou,
             "edge_support": self.edge_support,
-            "edge_distance_px": _finite_or_none(self.edge_distance_px),
+            "edge_distance_px": atomic.json_number(self.edge_distance_px),
             "doubts": self.doubts,
-            "chain_spread_mm": _finite_or_none(self.spread_mm) if self.chains > 1 else None,
-            "chain_spread_deg": _finite_or_none(self.spread_deg) if self.chains > 1 else None,
+            "chain_spread_mm": atomic.json_number(self.spread_mm) if self.chains > 1 else None,
+            "chain_spread_deg": atomic.json_number(self.spread_deg) if self.chains > 1 else None,
             "chains": self.chains,
         }
-
-
-def _finite_or_none(value: float | None) -> float | None:
-    return float(value) if value is not None and np.isfinite(value) else None
 
 
 def estimate_pose(

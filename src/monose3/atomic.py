@@ -3,6 +3,7 @@ an interrupted run leaves either the old file or the new one, never a partial on
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from collections.abc import Iterator
@@ -44,3 +45,8 @@ def write_bytes(path: str | Path, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
+
+
+def json_number(value: float | None) -> float | None:
+    """``value`` as a float, or None where it is missing or not finite: strict JSON has no NaN or Infinity."""
+    return None if value is None or not math.isfinite(value) else float(value)

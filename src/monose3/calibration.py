@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from monose3.atomic import json_number
 from monose3.data.frames import load_images, skipped_annotations
 from monose3.errors import Monose3Error
 from monose3.geometry.averaging import (
@@ -83,20 +84,16 @@ class FrameResult:
             "frame": self.name,
             "used": self.used,
             "rejected_because": self.reason,
-            "residual_mm": _num(self.residual_mm),
-            "residual_deg": _num(self.residual_deg),
+            "residual_mm": json_number(self.residual_mm),
+            "residual_deg": json_number(self.residual_deg),
             "in_view": self.in_view,
             "fit_reliable": self.fit_reliable,
-            "chain_spread_mm": _num(self.chain_spread_mm),
-            "chain_spread_deg": _num(self.chain_spread_deg),
-            "add_single_mm": _num(self.add_single_mm),
-            "add_fused_mm": _num(self.add_fused_mm),
+            "chain_spread_mm": json_number(self.chain_spread_mm),
+            "chain_spread_deg": json_number(self.chain_spread_deg),
+            "add_single_mm": json_number(self.add_single_mm),
+            "add_fused_mm": json_number(self.add_fused_mm),
             "camera_from_base": self.camera_from_base.tolist(),
         }
-
-
-def _num(v: float | None) -> float | None:
-    return None if v is None or not np.isfinite(v) else float(v)
 
 
 @dataclass
@@ -158,8 +155,8 @@ class CalibrationResult:
             "frames_skipped": len(self.skipped),
             "rejected": self.rejected,
             "chains": self.chains,
-            "consensus_threshold_mm": _num(self.threshold_mm),
-            "consensus_threshold_deg": _num(self.threshold_deg),
+            "consensus_threshold_mm": json_number(self.threshold_mm),
+            "consensus_threshold_deg": json_number(self.threshold_deg),
             "spread": self.spread,
             "ground_truth": self.ground_truth,
             "seconds": self.seconds,
@@ -335,7 +332,7 @@ def ground_truth_report(robot: RobotModel, frames: Sequence, results: list[Frame
         "fused_add_mean_mm": float(np.mean([r.add_fused_mm for r in results])),
         "single_frame_error_median_mm": float(np.median(single_mm)),
         "single_frame_error_median_deg": float(np.median(single_deg)),
-        "single_frame_add_median_mm": _num(float(np.median(single_add))),
+        "single_frame_add_median_mm": json_number(float(np.median(single_add))),
         "ground_truth_spread_max_mm": float(gt_spread_mm.max()),
         "ground_truth_spread_max_deg": float(gt_spread_deg.max()),
         "static_camera": bool(gt_spread_mm.max() <= STATIC_GT_MM),

@@ -47,7 +47,7 @@ from monose3.apps.arguments import (
     check_parser_file,
     robot_model,
 )
-from monose3.atomic import atomic_path, write_text
+from monose3.atomic import atomic_path, json_number, write_text
 from monose3.data import validation as v
 from monose3.data.frames import (
     format_skipped,
@@ -165,7 +165,6 @@ class TrackFrame:
     add_mm: float | None = None  # ground truth only; inf when the estimate is out of view
 
     def to_dict(self) -> dict:
-        num = lambda v: None if v is None or not math.isfinite(v) else float(v)  # noqa: E731
         return {
             "index": self.index,
             "frame": self.name,
@@ -173,10 +172,10 @@ class TrackFrame:
             "reason": self.reason,
             "in_view": self.in_view,
             "camera_from_base": [float(v) for v in self.camera_from_base.reshape(-1)],
-            "step_mm": num(self.step_mm),
-            "step_deg": num(self.step_deg),
+            "step_mm": json_number(self.step_mm),
+            "step_deg": json_number(self.step_deg),
             "seconds": float(self.seconds),
-            "add_mm": num(self.add_mm),
+            "add_mm": json_number(self.add_mm),
         }
 
 

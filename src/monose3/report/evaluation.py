@@ -120,14 +120,14 @@ def frame_record(frame, add: float, est: Estimate, j: int, step: TrackStep | Non
     """The JSON record of frame ``j`` of ``est`` (with the tracking policy's mode and reason)."""
     record = {
         "frame": frame.name,
-        "add_m": add if np.isfinite(add) else None,
+        "add_m": atomic.json_number(add),
         "camera_from_base": est.poses[j].tolist(),
         "in_view": bool(est.in_view[j]),
     }
     if est.fit_iou is not None:
         record.update(silhouette_iou=float(est.fit_iou[j]), keypoint_px=float(est.keypoint_px[j]),
                       edge_support=float(est.edge_support[j]), reliable=bool(est.reliable[j]),
-                      edge_distance_px=float(est.edge_distance_px[j]) if np.isfinite(est.edge_distance_px[j]) else None,
+                      edge_distance_px=atomic.json_number(est.edge_distance_px[j]),
                       doubts=est.doubts[j])  # fmt: skip
     if step is not None:
         record.update(mode=step.mode, reason=step.reason)
@@ -149,7 +149,7 @@ def _denoising_overlay(estimator: PoseEstimator, image, K, joints, poses, path: 
 def _strict(value):
     """``value`` with every non-finite float replaced by None, so the JSON is strict."""
     if isinstance(value, float):
-        return value if np.isfinite(value) else None
+        return atomic.json_number(value)
     if isinstance(value, dict):
         return {k: _strict(x) for k, x in value.items()}
     if isinstance(value, (list, tuple)):
