@@ -3,13 +3,14 @@
 Rows (one per stage, each adding to the one above): the paper's reverse diffusion alone
 (RevDiff, 5 DDIM + 5 direct steps); the robot parser with PnP (hypotheses scored by silhouette
 IoU, no sphere search, no refinement); + the coarse search over the sphere; + the silhouette
-and keypoint refinement on the mask alone; + the image's edges in its fine pass (the default).
+and keypoint refinement on the mask alone; + the image's edges in its fine pass; + the local
+search on the silhouette's score between the passes (the default).
 Per row and set: AUC of ADD (0-100 mm), median ADD, CPU seconds per image (with the stages'
 split for the default). Then:
 
 * refinement from the true pose moved by ``--start-deg`` / ``--start-cm`` (a random axis and
-  direction): the refinement alone (``track_pose(detect=False)``, the default pipeline's
-  iterations, no PnP start), the share of frames that end closer than they started, start and
+  direction): the default pipeline's refinement alone (``fitting.refine_from``: no PnP start),
+  the share of frames that end closer than they started, start and
   final medians;
 * the ``reliable`` flag (``perception.fitting.fit_doubts``) against ADD > ``--bad-mm``: recall of
   the bad estimates and false alarms among the good ones;
@@ -41,16 +42,11 @@ from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
 from monose3.geometry.rotations import axis_angle_to_matrix
-from monose3.perception.fitting import (
-    COARSE_ITERATIONS,
-    REFINE_ITERATIONS,
-    fit_doubts,
-    fit_pose,
-    track_pose,
-)
+from monose3.perception.fitting import fit_doubts, fit_pose, refine_from
 from monose3.report.metrics import add_per_frame, auc
 
-STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ mask refinement", "+ edges (default)")
+STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ mask refinement", "+ edges",
+          "+ local search (default)")  # fmt: skip
 
 
 def frame_add(estimator, frame, pose: np.ndarray) -> float:
@@ -67,10 +63,12 @@ def run_stage(estimator, frame, image, stage: str) -> tuple[np.ndarray, dict, bo
         est = estimator.estimate([image], frame.K[None], frame.joints[None], sampler="revdiff")
         pose = est.poses[0] if est.in_view[0] else np.full((4, 4), np.nan)
         return pose, {"total": time.perf_counter() - tick}, True
-    options = {STAGES[1]: (False, False, False), STAGES[2]: (True, False, False), STAGES[3]: (True, True, False),
-               STAGES[4]: (True, True, True)}[stage]  # fmt: skip
+    options = {STAGES[1]: (False, False, False, False), STAGES[2]: (True, False, False, False),
+               STAGES[3]: (True, True, False, False), STAGES[4]: (True, True, True, False),
+               STAGES[5]: (True, True, True, True)}[stage]  # fmt: skip
+    sphere, refine, edges, search = options
     args = (estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
-    fit = fit_pose(*args, sphere=options[0], refine=options[1], edges=options[2])
+    fit = fit_pose(*args, sphere=sphere, refine=refine, edges=edges, search=search)
     doubts = fit_doubts(fit, estimator.robot, frame.joints, frame.K, image.shape)
     return fit.pose, {**fit.timings, "total": sum(fit.timings.values())}, bool(doubts)
 
@@ -103,8 +101,7 @@ def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
             if stage == STAGES[-1]:
                 flagged.append(doubted)
         start = moved(frame.pose, rng, args.start_deg, args.start_cm)
-        fit = track_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints, start,
-                         iterations=tuple(args.refine_iterations), detect=False)  # fmt: skip
+        fit = refine_from(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints, start)
         refine["start"].append(frame_add(estimator, frame, start))
         refine["final"].append(frame_add(estimator, frame, fit.pose))
         near = perturb_poses(frame.pose[None], rng, 0.02, 3.0)
@@ -185,8 +182,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--parser", help="robot parser weights (default: bundled)")
     p.add_argument("--start-deg", type=float, default=5.0)
     p.add_argument("--start-cm", type=float, default=3.0)
-    iterations = [COARSE_ITERATIONS, REFINE_ITERATIONS]
-    p.add_argument("--refine-iterations", type=int, nargs=2, default=iterations, metavar=("COARSE", "FINE"))
     p.add_argument("--bad-mm", type=float, default=30.0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json")

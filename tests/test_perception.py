@@ -14,7 +14,17 @@ from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
 from monose3.perception.edges import edge_terms, find_edges
-from monose3.perception.fitting import Fit, fit_pose, not_found, refine_coarse_to_fine, track_pose
+from monose3.perception.fitting import (
+    TRACK_ITERATIONS,
+    Fit,
+    best_fit,
+    fit_pose,
+    not_found,
+    refine_coarse_to_fine,
+    refine_from,
+    track_pose,
+    view_around,
+)
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.silhouette import Outline
 from monose3.perception.views import ViewEvidence
@@ -189,6 +199,8 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     assert 0.5 < fit.edge_support <= 1 and 0 < fit.edge_distance_px < 0.8 and 0 <= fit.spread_mm < 5
     tracked = track_pose(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 3, 2))
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
+    refined = refine_from(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 5, 3))
+    assert _add(models["panda"], joints, refined.pose, fit.pose) < 0.005 and len(refined.candidates) == 3
 
 
 def test_a_lost_track_is_found_again(parser, renderers, models, sample):
@@ -201,7 +213,10 @@ def test_a_lost_track_is_found_again(parser, renderers, models, sample):
     start = _moved(fit.pose, 30, 15)
     found = track_pose(*args, start)
     assert _add(models["panda"], joints, found.pose, fit.pose) < 0.01 and not found.doubts()
-    lost = track_pose(*args, start, detect=False)
+    view = view_around(parser, models["panda"], image, K, joints, start)
+    kp = models["panda"].keypoints(joints[None])[0]
+    alone = refine_coarse_to_fine(renderers["panda"], joints, start[None], view, kp, *TRACK_ITERATIONS)
+    lost = best_fit(renderers["panda"], joints, alone, view, kp)
     assert _add(models["panda"], joints, lost.pose, fit.pose) > 0.1 and lost.doubts()
 
 

@@ -58,3 +58,11 @@ def test_perturb_poses_moves_by_the_asked_amounts():
     # three independent 3 deg axes: a mean angle of about sqrt(8 / pi) * 3 deg
     mean_deg = np.degrees(rotation_angle(np.eye(3), moved[:, :3, :3])).mean()
     assert mean_deg == pytest.approx(np.sqrt(8 / np.pi) * 3.0, rel=0.05)
+
+
+def test_perturb_poses_turns_about_the_pivot():
+    poses = np.repeat(make_pose(np.eye(3), np.array([0.1, -0.2, 1.5]))[None], 50, 0)
+    pivot = np.array([0.0, 0.0, 0.4])
+    moved = perturb_poses(poses, np.random.default_rng(0), trans_m=0.0, rot_deg=10.0, pivot=pivot)
+    np.testing.assert_allclose(transform_points(moved, pivot[None]), transform_points(poses, pivot[None]), atol=1e-12)
+    assert np.abs(moved[:, :3, 3] - poses[:, :3, 3]).max() > 0.02  # the base origin swings round it

@@ -53,12 +53,16 @@ def rigid_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:
     return pose, float(np.sqrt((resid**2).sum(1).mean()))
 
 
-def perturb_poses(poses: np.ndarray, rng: np.random.Generator, trans_m: float, rot_deg: float) -> np.ndarray:
+def perturb_poses(poses: np.ndarray, rng: np.random.Generator, trans_m: float, rot_deg: float,
+                  pivot: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Poses ``[N, 4, 4]`` moved by Gaussian noise: the rotation turned by XYZ Euler angles of
-    std ``rot_deg`` per axis (in the camera frame, about the base origin), the translation
-    shifted by std ``trans_m`` per axis. Stands in for a rough prior or an inter-frame motion."""
+    std ``rot_deg`` per axis (in the camera frame, about the base origin, or about ``pivot``, a
+    point ``[3]`` in the base frame), the translation shifted by std ``trans_m`` per axis. Stands
+    in for a rough prior or an inter-frame motion, and draws the local search's trial poses."""
     out = np.array(poses, np.float64)
-    angles = rng.normal(0, np.radians(rot_deg), (len(out), 3))
-    out[:, :3, :3] = euler_xyz_to_matrix(angles) @ out[:, :3, :3]
+    turn = euler_xyz_to_matrix(rng.normal(0, np.radians(rot_deg), (len(out), 3)))
+    centre = out[:, :3, 3] if pivot is None else transform_points(out, np.asarray(pivot, np.float64)[None])[:, 0]
+    out[:, :3, :3] = turn @ out[:, :3, :3]
+    out[:, :3, 3] = np.einsum("nij,nj->ni", turn, out[:, :3, 3] - centre) + centre
     out[:, :3, 3] += rng.normal(0, trans_m, (len(out), 3))
     return out

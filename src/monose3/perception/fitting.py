@@ -19,7 +19,10 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
    derivative-free search needs dozens of renders per step for the same precision.
    Everything is compared inside the image only (``ViewEvidence.valid_region``): where the
    image's border cuts the robot, the mask ends but the robot does not.
-5. **Edges.** At the view's resolution the render's outline is also pulled onto the image's
+5. **Local search.** ICP follows the nearest outline, which a wrong part of the mask can lead
+   astray; a derivative-free search on the whole silhouette's score from each start and each
+   coarse result (``local_search.py``) gives the fine pass more starts.
+6. **Edges.** At the view's resolution the render's outline is also pulled onto the image's
    own edges (``perception/edges.py``), with the mask's terms weighted down: the coarse pass on
    the mask brought the fit into its basin, the edges give it sub-pixel precision.
 
@@ -43,6 +46,7 @@ from monose3.geometry.rotations import rotation_angle
 from monose3.method.flow_pose import solve_pose
 from monose3.perception.edges import edge_agreement, edge_terms
 from monose3.perception.hypotheses import pnp_hypotheses, sphere_hypotheses
+from monose3.perception.local_search import DEFAULT_SEARCH, SearchConfig, search_locally
 from monose3.perception.parser import RobotParser
 from monose3.perception.silhouette import (
     OUTLINE_SCALE,
@@ -146,7 +150,7 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
                  keypoints_base: np.ndarray, iterations: int = REFINE_ITERATIONS,
                  edges: bool = False) -> np.ndarray:  # fmt: skip
     """Silhouette + keypoint refinement of ``poses`` ``[H, 4, 4]`` (see the module's step 4), and
-    with ``edges`` the image's edges too (step 5; a view without pixels has none)."""
+    with ``edges`` the image's edges too (step 6; a view without pixels has none)."""
     edges = edges and view.image is not None
     mask_share = MASK_SHARE_WITH_EDGES if edges else 1.0
     target = Outline((view.mask > MASK_THRESHOLD).numpy(), view.valid)
@@ -187,6 +191,20 @@ def refine_coarse_to_fine(renderer: RobotRenderer, joints: np.ndarray, poses: np
     at the view's resolution, with the image's ``edges``."""
     poses = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, coarse)
     return refine_poses(renderer, joints, poses, view, keypoints_base, fine, edges)
+
+
+def refine_hypotheses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                      keypoints_base: np.ndarray, pivot: np.ndarray, edges: bool = True,
+                      search: SearchConfig | None = DEFAULT_SEARCH) -> np.ndarray:  # fmt: skip
+    """The default pipeline's refinement of ``poses`` ``[H, 4, 4]``: :func:`refine_coarse_to_fine`,
+    and with ``search`` the local search (module step 5) from each start and each coarse result,
+    refined by the fine pass too; all refined poses ``[H or 3H, 4, 4]``, for :func:`best_fit`.
+    ``pivot``: the robot's centre in the base frame, what the search turns poses about."""
+    coarse = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, COARSE_ITERATIONS)
+    if search is not None:
+        score = lambda trials: hypothesis_scores(renderer, joints, trials, view, keypoints_base, search.size)  # noqa: E731
+        coarse = np.concatenate([coarse, search_locally(np.concatenate([poses, coarse]), score, pivot, search)])
+    return refine_poses(renderer, joints, coarse, view, keypoints_base, REFINE_ITERATIONS, edges)
 
 
 def inside_fraction(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> float:
@@ -238,10 +256,11 @@ def fit_pose(
     sphere: bool = True,
     refine: bool = True,
     edges: bool = True,
+    search: bool = True,
 ) -> Fit:
     """The module's stages on one image (``[H, W, 3]`` uint8 RGB, its K, the joints).
-    ``sphere`` / ``refine`` off leave out the sphere's hypotheses / the refinement, ``edges``
-    off refines on the mask alone (ablations)."""
+    ``sphere`` / ``refine`` / ``search`` off leave out the sphere's hypotheses / the refinement /
+    its local search, ``edges`` off refines on the mask alone (ablations)."""
     clock = _Clock()
     size = parser.config.input_size
     aspect = size[0] / size[1]
@@ -258,14 +277,16 @@ def fit_pose(
     hyps = pnp_hypotheses(view, kp_base)
     if extra_poses is not None:
         hyps += list(extra_poses)
+    surface = robot.surface_points(joints[None])[0]
     if sphere or not hyps:
-        hyps += sphere_hypotheses(view, robot.surface_points(joints[None])[0])
+        hyps += sphere_hypotheses(view, surface)
     if not hyps:
         return not_found(view)
     poses = best_hypotheses(renderer, joints, np.stack(hyps), view, kp_base, KEEP_HYPOTHESES)
     clock.lap("search")
     if refine:
-        poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base, edges=edges)
+        local = DEFAULT_SEARCH if search else None
+        poses = refine_hypotheses(renderer, joints, poses, view, kp_base, robot.centroid(surface), edges, local)
         clock.lap("refine")
     fit = best_fit(renderer, joints, poses, view, kp_base)
     clock.lap("score")
@@ -273,11 +294,17 @@ def fit_pose(
     return fit
 
 
+def hypothesis_scores(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
+                      kp_base: np.ndarray, size: tuple[int, int] = SCORE_SIZE) -> np.ndarray:  # fmt: skip
+    """Score ``[H]`` of ``poses`` ``[H, 4, 4]``: silhouette IoU at ``size`` less the keypoint term."""
+    ious = silhouette_ious(renderer, joints, poses, view, size)
+    return fit_scores(ious, keypoint_errors(poses, kp_base, view), view)
+
+
 def best_hypotheses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
                     kp_base: np.ndarray, keep: int) -> np.ndarray:  # fmt: skip
-    """The ``keep`` best of ``poses`` ``[H, 4, 4]`` by silhouette IoU at :data:`SCORE_SIZE` less the keypoint term."""
-    ious = silhouette_ious(renderer, joints, poses, view, SCORE_SIZE)
-    return poses[np.argsort(-fit_scores(ious, keypoint_errors(poses, kp_base, view), view))[:keep]]
+    """The ``keep`` best of ``poses`` ``[H, 4, 4]`` by :func:`hypothesis_scores`."""
+    return poses[np.argsort(-hypothesis_scores(renderer, joints, poses, view, kp_base))[:keep]]
 
 
 def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
@@ -316,6 +343,21 @@ def not_found(view: ViewEvidence) -> Fit:
     return Fit(np.full((4, 4), np.nan), 0.0, math.inf, -math.inf, view, np.zeros((0, 4, 4)), found=False)
 
 
+def view_around(parser: RobotParser, robot: RobotModel, image: np.ndarray, K: np.ndarray, joints: np.ndarray,
+                pose: np.ndarray) -> ViewEvidence:  # fmt: skip
+    """The parser's view of the image around where ``pose`` puts the robot's surface (the
+    whole image where that is larger, or where the pose puts it nowhere)."""
+    size = parser.config.input_size
+    aspect = size[0] / size[1]
+    whole = full_box((image.shape[1], image.shape[0]), aspect)
+    surface = robot.surface_points(joints[None])[0]
+    uv = project(surface @ pose[:3, :3].T + pose[:3, 3], K)
+    box = box_around(uv.min(0), uv.max(0), aspect) if np.isfinite(uv).all() else whole
+    if box[2] - box[0] > whole[2] - whole[0]:
+        box = whole
+    return parse_view(parser, image_tensor(image), K, box)
+
+
 def track_pose(
     parser: RobotParser,
     renderer: RobotRenderer,
@@ -325,27 +367,29 @@ def track_pose(
     joints: np.ndarray,
     previous: np.ndarray,
     iterations: tuple[int, int] = TRACK_ITERATIONS,
-    detect: bool = True,
 ) -> Fit:
-    """Tracking: the refinement's (coarse, fine) ``iterations`` in one parser view around where
-    the ``previous`` pose puts the robot's surface. With ``detect``, the refinement starts from
-    the better of ``previous`` and the view's PnP hypotheses, scored as the search scores them
-    (a few small renders): between frames the robot can move further than a few iterations
-    reach, and a lost track is found again. Without, it starts from ``previous`` alone: the
-    refinement by itself, as ``benchmarks/accuracy.py`` measures it."""
-    size = parser.config.input_size
-    aspect = size[0] / size[1]
-    whole = full_box((image.shape[1], image.shape[0]), aspect)
-    surface = robot.surface_points(joints[None])[0]
-    uv = project(surface @ previous[:3, :3].T + previous[:3, 3], K)
-    box = box_around(uv.min(0), uv.max(0), aspect) if np.isfinite(uv).all() else whole
-    if box[2] - box[0] > whole[2] - whole[0]:
-        box = whole
-    view = parse_view(parser, image_tensor(image), K, box)
+    """Tracking: the refinement's (coarse, fine) ``iterations``, without the local search, in
+    the parser's :func:`view_around` the ``previous`` pose, from the better of ``previous`` and
+    the view's PnP hypotheses, scored as the search scores them (a few small renders): between
+    frames the robot can move further than a few iterations reach, and a lost track is found again."""
+    view = view_around(parser, robot, image, K, joints, previous)
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
     kp_base = robot.keypoints(joints[None])[0]
-    starts = [previous, *pnp_hypotheses(view, kp_base)] if detect else [previous]
-    start = best_hypotheses(renderer, joints, np.stack(starts), view, kp_base, 1) if len(starts) > 1 else previous[None]
+    start = best_hypotheses(renderer, joints, np.stack([previous, *pnp_hypotheses(view, kp_base)]), view, kp_base, 1)
     poses = refine_coarse_to_fine(renderer, joints, start, view, kp_base, *iterations)
+    return best_fit(renderer, joints, poses, view, kp_base)
+
+
+def refine_from(parser: RobotParser, renderer: RobotRenderer, robot: RobotModel, image: np.ndarray,
+                K: np.ndarray, joints: np.ndarray, start: np.ndarray) -> Fit:  # fmt: skip
+    """The default pipeline's refinement (:func:`refine_hypotheses`) from the one pose ``start``,
+    in the parser's :func:`view_around` it: what ``benchmarks/accuracy.py`` measures the
+    refinement by, and a way to refine a pose known roughly (an earlier calibration)."""
+    view = view_around(parser, robot, image, K, joints, start)
+    if view.robot_fraction < MIN_MASK_FRACTION:
+        return not_found(view)
+    kp_base = robot.keypoints(joints[None])[0]
+    pivot = robot.centroid(robot.surface_points(joints[None])[0])
+    poses = refine_hypotheses(renderer, joints, start[None], view, kp_base, pivot)
     return best_fit(renderer, joints, poses, view, kp_base)
