@@ -1,8 +1,8 @@
-"""How the ``reliable`` flag of the default pipeline is chosen: its two thresholds (silhouette
-IoU, the RMS distance of the outline to the image's own edges) on frames of their own, for a
-target recall of bad estimates (ADD > ``--bad-mm``) at the fewest false alarms. The edge
-support and the refined hypotheses' spread are offered too; with them as free parameters the
-search here set them to "never doubt" (2026-12-05), so the flag reads IoU and edge distance.
+"""How the ``reliable`` flag of the default pipeline is chosen: its thresholds (silhouette IoU,
+the RMS distance of the outline to the image's own edges, the share of the outline on them) on
+frames of their own, for a target recall of bad estimates (ADD > ``--bad-mm``) at the fewest
+false alarms. The refined hypotheses' spread is offered too; the search here sets it to "never
+doubt", and it set the edge support so too until the local search came (2026-12-05).
 
 Prints the best thresholds found on ``--data`` and how the flag with the thresholds in
 ``perception/fitting.py`` does there. The frames must not be the held-out sets the README
@@ -55,7 +55,7 @@ def frame_features(estimator, folder: str) -> list[dict]:
 
 
 def flag(f: dict, iou: float, edge_px: float, support: float = 0.0, spread_mm: float = np.inf) -> np.ndarray:
-    """Unreliable, as ``fitting.fit_doubts`` decides it (the first two thresholds), for thresholds given."""
+    """Unreliable, as ``fitting.fit_doubts`` decides it (the first three thresholds), for thresholds given."""
     return ((f["iou"] < iou) | ~(f["edge_distance"] <= edge_px) | (f["inside"] < fitting.MIN_INSIDE)
             | (f["support"] < support) | (f["spread"] > spread_mm))  # fmt: skip
 
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
             rule = f"IoU >= {iou:.2f}, edge distance <= {edge_px:.2f} px, support >= {support:.2f}"
             rule += f", spread <= {spread:g} mm"
             print(f"  {rule}: recall {-100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
-        current = (fitting.RELIABLE_IOU, fitting.RELIABLE_EDGE_DISTANCE_PX)
+        current = (fitting.RELIABLE_IOU, fitting.RELIABLE_EDGE_DISTANCE_PX, fitting.RELIABLE_EDGE_SUPPORT)
         recall, false_alarms = rates(flag(f, *current), bad)
         print(f"the flag as shipped {current}: recall {100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
         return 0
