@@ -9,7 +9,7 @@ Per row and set: AUC of ADD (0-100 mm), median ADD, CPU seconds per image (with 
 split for the default). Then:
 
 * refinement from the true pose moved by ``--start-deg`` / ``--start-cm`` (a random axis and
-  direction): the default pipeline's refinement alone (``fitting.refine_from``: no PnP start),
+  direction): the default pipeline's refinement alone (``from_pose.refine_from``: no PnP start),
   the share of frames that end closer than they started, start and
   final medians;
 * the ``reliable`` flag (``perception.fitting.fit_doubts``) against ADD > ``--bad-mm``: recall of
@@ -42,7 +42,8 @@ from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
 from monose3.geometry.rotations import axis_angle_to_matrix
-from monose3.perception.fitting import fit_doubts, fit_pose, refine_from
+from monose3.perception.fitting import fit_doubts, fit_pose
+from monose3.perception.from_pose import refine_from
 from monose3.report.metrics import add_per_frame, auc
 
 STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ mask refinement", "+ edges",

@@ -14,17 +14,8 @@ from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
 from monose3.perception.edges import edge_terms, find_edges
-from monose3.perception.fitting import (
-    TRACK_ITERATIONS,
-    Fit,
-    best_fit,
-    fit_pose,
-    not_found,
-    refine_coarse_to_fine,
-    refine_from,
-    track_pose,
-    view_around,
-)
+from monose3.perception.fitting import Fit, best_fit, fit_pose, not_found, refine_coarse_to_fine
+from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_pose, view_around
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.silhouette import Outline
 from monose3.perception.views import ViewEvidence

@@ -60,7 +60,6 @@ from monose3.perception.views import (
     MASK_THRESHOLD,
     MIN_MASK_FRACTION,
     ViewEvidence,
-    box_around,
     full_box,
     image_tensor,
     parse_view,
@@ -74,7 +73,6 @@ SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
 KEEP_HYPOTHESES = 2  # refined per image
 COARSE_ITERATIONS = 12  # refinement at SCORE_SIZE, on the mask
 REFINE_ITERATIONS = 16  # then at the view's resolution, with the image's edges
-TRACK_ITERATIONS = (4, 4)  # coarse, fine: between frames the robot moves little
 # With the edges, the mask's terms weigh this share of their weight, and the edges up to
 # EDGE_WEIGHT: where the image shows an edge it decides (benchmarks/accuracy.py).
 MASK_SHARE_WITH_EDGES = 0.3
@@ -346,55 +344,3 @@ class _Clock:
 
 def not_found(view: ViewEvidence) -> Fit:
     return Fit(np.full((4, 4), np.nan), 0.0, math.inf, -math.inf, view, np.zeros((0, 4, 4)), found=False)
-
-
-def view_around(parser: RobotParser, robot: RobotModel, image: np.ndarray, K: np.ndarray, joints: np.ndarray,
-                pose: np.ndarray) -> ViewEvidence:  # fmt: skip
-    """The parser's view of the image around where ``pose`` puts the robot's surface (the
-    whole image where that is larger, or where the pose puts it nowhere)."""
-    size = parser.config.input_size
-    aspect = size[0] / size[1]
-    whole = full_box((image.shape[1], image.shape[0]), aspect)
-    surface = robot.surface_points(joints[None])[0]
-    uv = project(surface @ pose[:3, :3].T + pose[:3, 3], K)
-    box = box_around(uv.min(0), uv.max(0), aspect) if np.isfinite(uv).all() else whole
-    if box[2] - box[0] > whole[2] - whole[0]:
-        box = whole
-    return parse_view(parser, image_tensor(image), K, box)
-
-
-def track_pose(
-    parser: RobotParser,
-    renderer: RobotRenderer,
-    robot: RobotModel,
-    image: np.ndarray,
-    K: np.ndarray,
-    joints: np.ndarray,
-    previous: np.ndarray,
-    iterations: tuple[int, int] = TRACK_ITERATIONS,
-) -> Fit:
-    """Tracking: the refinement's (coarse, fine) ``iterations``, without the local search, in
-    the parser's :func:`view_around` the ``previous`` pose, from the better of ``previous`` and
-    the view's PnP hypotheses, scored as the search scores them (a few small renders): between
-    frames the robot can move further than a few iterations reach, and a lost track is found again."""
-    view = view_around(parser, robot, image, K, joints, previous)
-    if view.robot_fraction < MIN_MASK_FRACTION:
-        return not_found(view)
-    kp_base = robot.keypoints(joints[None])[0]
-    start = best_hypotheses(renderer, joints, np.stack([previous, *pnp_hypotheses(view, kp_base)]), view, kp_base, 1)
-    poses = refine_coarse_to_fine(renderer, joints, start, view, kp_base, *iterations)
-    return best_fit(renderer, joints, poses, view, kp_base)
-
-
-def refine_from(parser: RobotParser, renderer: RobotRenderer, robot: RobotModel, image: np.ndarray,
-                K: np.ndarray, joints: np.ndarray, start: np.ndarray) -> Fit:  # fmt: skip
-    """The default pipeline's refinement (:func:`refine_hypotheses`) from the one pose ``start``,
-    in the parser's :func:`view_around` it: what ``benchmarks/accuracy.py`` measures the
-    refinement by, and a way to refine a pose known roughly (an earlier calibration)."""
-    view = view_around(parser, robot, image, K, joints, start)
-    if view.robot_fraction < MIN_MASK_FRACTION:
-        return not_found(view)
-    kp_base = robot.keypoints(joints[None])[0]
-    pivot = robot.centroid(robot.surface_points(joints[None])[0])
-    poses = refine_hypotheses(renderer, joints, start[None], view, kp_base, pivot)
-    return best_fit(renderer, joints, poses, view, kp_base)

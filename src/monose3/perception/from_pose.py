@@ -1,0 +1,78 @@
+"""Fits that start from a pose known roughly: tracking from the previous frame's pose, and the
+default refinement from one pose (a rough prior, an earlier calibration; what
+``benchmarks/accuracy.py`` measures the refinement by). Both parse one view of the image around
+where that pose puts the robot; ``fitting.py`` holds the stages they share with a fit from scratch."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from monose3.geometry.camera import project
+from monose3.perception.fitting import (
+    MIN_MASK_FRACTION,
+    Fit,
+    best_fit,
+    best_hypotheses,
+    not_found,
+    refine_coarse_to_fine,
+    refine_hypotheses,
+)
+from monose3.perception.hypotheses import pnp_hypotheses
+from monose3.perception.parser import RobotParser
+from monose3.perception.views import ViewEvidence, box_around, full_box, image_tensor, parse_view
+from monose3.robot import RobotModel
+from monose3.robot.renderer import RobotRenderer
+
+TRACK_ITERATIONS = (4, 4)  # coarse, fine: between frames the robot moves little
+
+
+def view_around(parser: RobotParser, robot: RobotModel, image: np.ndarray, K: np.ndarray, joints: np.ndarray,
+                pose: np.ndarray) -> ViewEvidence:  # fmt: skip
+    """The parser's view of the image around where ``pose`` puts the robot's surface (the
+    whole image where that is larger, or where the pose puts it nowhere)."""
+    size = parser.config.input_size
+    aspect = size[0] / size[1]
+    whole = full_box((image.shape[1], image.shape[0]), aspect)
+    surface = robot.surface_points(joints[None])[0]
+    uv = project(surface @ pose[:3, :3].T + pose[:3, 3], K)
+    box = box_around(uv.min(0), uv.max(0), aspect) if np.isfinite(uv).all() else whole
+    if box[2] - box[0] > whole[2] - whole[0]:
+        box = whole
+    return parse_view(parser, image_tensor(image), K, box)
+
+
+def track_pose(
+    parser: RobotParser,
+    renderer: RobotRenderer,
+    robot: RobotModel,
+    image: np.ndarray,
+    K: np.ndarray,
+    joints: np.ndarray,
+    previous: np.ndarray,
+    iterations: tuple[int, int] = TRACK_ITERATIONS,
+) -> Fit:
+    """Tracking: the refinement's (coarse, fine) ``iterations``, without the local search, in
+    the parser's :func:`view_around` the ``previous`` pose, from the better of ``previous`` and
+    the view's PnP hypotheses, scored as the search scores them (a few small renders): between
+    frames the robot can move further than a few iterations reach, and a lost track is found again."""
+    view = view_around(parser, robot, image, K, joints, previous)
+    if view.robot_fraction < MIN_MASK_FRACTION:
+        return not_found(view)
+    kp_base = robot.keypoints(joints[None])[0]
+    start = best_hypotheses(renderer, joints, np.stack([previous, *pnp_hypotheses(view, kp_base)]), view, kp_base, 1)
+    poses = refine_coarse_to_fine(renderer, joints, start, view, kp_base, *iterations)
+    return best_fit(renderer, joints, poses, view, kp_base)
+
+
+def refine_from(parser: RobotParser, renderer: RobotRenderer, robot: RobotModel, image: np.ndarray,
+                K: np.ndarray, joints: np.ndarray, start: np.ndarray) -> Fit:  # fmt: skip
+    """The default pipeline's refinement (:func:`refine_hypotheses`) from the one pose ``start``,
+    in the parser's :func:`view_around` it: what ``benchmarks/accuracy.py`` measures the
+    refinement by, and a way to refine a pose known roughly (an earlier calibration)."""
+    view = view_around(parser, robot, image, K, joints, start)
+    if view.robot_fraction < MIN_MASK_FRACTION:
+        return not_found(view)
+    kp_base = robot.keypoints(joints[None])[0]
+    pivot = robot.centroid(robot.surface_points(joints[None])[0])
+    poses = refine_hypotheses(renderer, joints, start[None], view, kp_base, pivot)
+    return best_fit(renderer, joints, poses, view, kp_base)
