@@ -188,26 +188,19 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
 
 def refine_coarse_to_fine(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
                           keypoints_base: np.ndarray, coarse: int = COARSE_ITERATIONS, fine: int = REFINE_ITERATIONS,
-                          edges: bool = True) -> np.ndarray:  # fmt: skip
+                          edges: bool = True, search: SearchConfig | None = None,
+                          pivot: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """:func:`refine_poses` on the mask at :data:`SCORE_SIZE` first (``coarse`` iterations:
     renders 4x cheaper, and ICP on silhouettes needs many small steps from afar), then ``fine``
-    at the view's resolution, with the image's ``edges``."""
-    poses = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, coarse)
-    return refine_poses(renderer, joints, poses, view, keypoints_base, fine, edges)
-
-
-def refine_hypotheses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
-                      keypoints_base: np.ndarray, pivot: np.ndarray, edges: bool = True,
-                      search: SearchConfig | None = DEFAULT_SEARCH) -> np.ndarray:  # fmt: skip
-    """The default pipeline's refinement of ``poses`` ``[H, 4, 4]``: :func:`refine_coarse_to_fine`,
-    and with ``search`` the local search (module step 5) from each start and each coarse result,
-    refined by the fine pass too; all refined poses ``[H or 3H, 4, 4]``, for :func:`best_fit`.
-    ``pivot``: the robot's centre in the base frame, what the search turns poses about."""
-    coarse = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, COARSE_ITERATIONS)
+    at the view's resolution, with the image's ``edges``. With ``search``, the local search
+    (module step 5) from each start and each coarse result goes between them, turning trial
+    poses about ``pivot`` (the robot's centre in the base frame); all refined poses ``[H or 3H,
+    4, 4]`` come back, for :func:`best_fit`."""
+    refined = refine_poses(renderer, joints, poses, resized_view(view, SCORE_SIZE), keypoints_base, coarse)
     if search is not None:
         score = lambda trials: hypothesis_scores(renderer, joints, trials, view, keypoints_base, search.size)  # noqa: E731
-        coarse = np.concatenate([coarse, search_locally(np.concatenate([poses, coarse]), score, pivot, search)])
-    return refine_poses(renderer, joints, coarse, view, keypoints_base, REFINE_ITERATIONS, edges)
+        refined = np.concatenate([refined, search_locally(np.concatenate([poses, refined]), score, pivot, search)])
+    return refine_poses(renderer, joints, refined, view, keypoints_base, fine, edges)
 
 
 def inside_fraction(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> float:
@@ -289,7 +282,8 @@ def fit_pose(
     clock.lap("search")
     if refine:
         local = DEFAULT_SEARCH if search else None
-        poses = refine_hypotheses(renderer, joints, poses, view, kp_base, robot.centroid(surface), edges, local)
+        pivot = robot.centroid(surface)
+        poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base, edges=edges, search=local, pivot=pivot)
         clock.lap("refine")
     fit = best_fit(renderer, joints, poses, view, kp_base)
     clock.lap("score")

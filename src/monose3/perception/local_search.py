@@ -39,11 +39,12 @@ class SearchConfig:
 DEFAULT_SEARCH = SearchConfig()
 
 
-def search_locally(poses: np.ndarray, score: Callable[[np.ndarray], np.ndarray], pivot: np.ndarray,
+def search_locally(poses: np.ndarray, score: Callable[[np.ndarray], np.ndarray], pivot: np.ndarray | None,
                    config: SearchConfig = DEFAULT_SEARCH) -> np.ndarray:  # fmt: skip
     """The best pose found near each of ``poses`` ``[H, 4, 4]`` by ``score`` (``[N, 4, 4]`` ->
     ``[N]``, higher is better; one call per generation with all starts' trials), turning the
-    trials about ``pivot`` ``[3]`` (base frame). Never returns a pose scoring lower than its start."""
+    trials about ``pivot`` ``[3]`` (base frame; None: the base origin). Never returns a pose
+    scoring lower than its start."""
     rng = np.random.default_rng(config.seed)
     best = np.array(poses, np.float64)
     best_scores = score(best)
