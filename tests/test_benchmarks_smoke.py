@@ -4,6 +4,7 @@ their tables, and their measurements obey what the geometry guarantees."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -240,6 +241,32 @@ def test_reliable_flag_small(tiny_dream: Path, capsys, keep_threads: None) -> No
     assert flag.main(["--data", str(tiny_dream), "--recall", "0"]) == 0
     out = capsys.readouterr().out
     assert "frames" in out and "IoU >= " in out and "the flag as shipped" in out
+
+
+@pytest.mark.slow
+def test_reliable_flag_check_measures_without_searching(
+    tiny_dream: Path, tmp_path: Path, capsys, keep_threads: None
+) -> None:
+    """``--check`` reports the shipped flag with intervals, and chooses no thresholds there."""
+    out_json = tmp_path / "flag.json"
+    assert load("reliable_flag").main(["--check", str(tiny_dream), "--json", str(out_json)]) == 0
+    out = capsys.readouterr().out
+    assert "the flag as shipped" in out and "false alarms" in out and "95 %" in out and "IoU >= " not in out
+    result = json.loads(out_json.read_text())[str(tiny_dream)]
+    assert len(result["features"]["add"]) == result["frames"] > 0 and len(result["false_alarms_95"]) == 2
+
+
+def test_wilson_interval_holds_the_share_and_narrows_with_frames() -> None:
+    wilson = load("reliable_flag").wilson
+    lo, hi = wilson(6, 41)
+    assert lo == pytest.approx(0.069, abs=1e-3) and hi == pytest.approx(0.284, abs=1e-3)  # the textbook values
+    assert wilson(60, 410)[1] - wilson(60, 410)[0] < hi - lo
+    assert wilson(0, 10)[0] == pytest.approx(0.0, abs=1e-12) and 0 < wilson(0, 10)[1] < 0.3
+
+
+def test_reliable_flag_asks_for_frames() -> None:
+    with pytest.raises(SystemExit):
+        load("reliable_flag").main([])
 
 
 @pytest.mark.parametrize(
