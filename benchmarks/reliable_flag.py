@@ -4,22 +4,29 @@ frames of their own, for a target recall of bad estimates (ADD > ``--bad-mm``) a
 false alarms. The refined hypotheses' spread is offered too; the search here sets it to "never
 doubt", and it set the edge support so too until the local search came (2026-12-05).
 
-Prints the best thresholds found on ``--data`` and how the flag with the thresholds in
-``perception/fitting.py`` does there. The frames must not be the held-out sets the README
-reports on (``benchmarks/accuracy.py`` measures the flag there). ``--check`` measures the flag
-as shipped, with 95 % (Wilson) intervals, on frames that had no part in choosing it (no search
-there, so nothing is tuned on them): the 60 frames of ``accuracy.py``'s sets leave the false
-alarms uncertain by about +-10 points, so the README's figure comes from 300 fresh hard frames
-(seed 7007) and 100 reallike (8008), generated after the thresholds were chosen:
+Prints the best thresholds found on ``--data`` (the fewest false alarms at ``--recall`` or
+more) and how the flag with the thresholds in ``perception/fitting.py`` does there. The frames
+must not be the held-out sets the README reports on (``benchmarks/accuracy.py`` measures the
+flag there). ``--check`` measures the flag as shipped, with 95 % (Wilson) intervals, on frames
+that had no part in choosing it (no search there, so nothing is tuned on them): the 60 frames
+of ``accuracy.py``'s sets leave the false alarms uncertain by about +-10 points.
+
+The thresholds shipped were chosen on 820 frames (seeds 3003-8008) for at least 91 % recall, a
+margin over the goal's 90 %: a rule chosen at exactly 90 % falls below it on new frames about
+half the time. The frames of seeds 7007 and 8008 were a ``--check`` set first, which showed the
+thresholds chosen on the first 420 frames (IoU 0.6) giving 12.6 % false alarms on hard ones;
+they then joined the choice, and 400 frames generated after it (9009, 10010) check it:
 
     monose3 generate --out data/calib_hard_tiny --num 80 --seed 3003 --profile hard --renderer tiny
     monose3 generate --out data/calib_reallike_tiny --num 40 --seed 4004 --profile reallike --renderer tiny
     monose3 generate --out data/calib2_hard_tiny --num 200 --seed 5005 --profile hard --renderer tiny
     monose3 generate --out data/calib2_reallike_tiny --num 100 --seed 6006 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --data data/calib*_tiny
-    monose3 generate --out data/fresh_hard_tiny --num 300 --seed 7007 --profile hard --renderer tiny
-    monose3 generate --out data/fresh_reallike_tiny --num 100 --seed 8008 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --check data/fresh_hard_tiny data/fresh_reallike_tiny \\
+    monose3 generate --out data/calib3_hard_tiny --num 300 --seed 7007 --profile hard --renderer tiny
+    monose3 generate --out data/calib3_reallike_tiny --num 100 --seed 8008 --profile reallike --renderer tiny
+    python benchmarks/reliable_flag.py --data data/calib*_tiny --recall 0.91 --threads 1
+    monose3 generate --out data/check_hard_tiny --num 300 --seed 9009 --profile hard --renderer tiny
+    monose3 generate --out data/check_reallike_tiny --num 100 --seed 10010 --profile reallike --renderer tiny
+    python benchmarks/reliable_flag.py --check data/check_hard_tiny data/check_reallike_tiny --threads 1 \\
         --json docs/results/reliable_flag.json
 """
 
@@ -85,6 +92,8 @@ def wilson(hits: int, n: int, z: float = 1.96) -> tuple[float, float]:
 
 
 def share_text(hits: int, n: int) -> str:
+    if n == 0:
+        return "- (no frames to count)"
     lo, hi = wilson(hits, n)
     return f"{100 * hits / max(n, 1):.1f} % ({hits} of {n}; 95 % {100 * lo:.1f}-{100 * hi:.1f} %)"
 
