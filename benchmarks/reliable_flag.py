@@ -95,7 +95,7 @@ def share_text(hits: int, n: int) -> str:
     if n == 0:
         return "- (no frames to count)"
     lo, hi = wilson(hits, n)
-    return f"{100 * hits / max(n, 1):.1f} % ({hits} of {n}; 95 % {100 * lo:.1f}-{100 * hi:.1f} %)"
+    return f"{100 * hits / n:.1f} % ({hits} of {n}; 95 % {100 * lo:.1f}-{100 * hi:.1f} %)"
 
 
 def features(rows: list[dict]) -> dict[str, np.ndarray]:
