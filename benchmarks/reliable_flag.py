@@ -53,6 +53,7 @@ IOUS = np.round(np.arange(0.5, 0.951, 0.05), 2)
 EDGE_DISTANCES_PX = np.round(np.arange(0.5, 1.51, 0.05), 2)
 SUPPORTS = (0.0, 0.2, 0.3, 0.4, 0.45, 0.5)
 SPREADS_MM = (2.0, 5.0, 10.0, 20.0, np.inf)
+SHIPPED = (fitting.RELIABLE_IOU, fitting.RELIABLE_EDGE_DISTANCE_PX, fitting.RELIABLE_EDGE_SUPPORT)
 
 
 def frame_features(estimator, folder: str) -> list[dict]:
@@ -105,20 +106,19 @@ def features(rows: list[dict]) -> dict[str, np.ndarray]:
 def check(estimator, folders: list[str], bad_mm: float) -> dict:
     """The shipped flag's recall and false alarms on each of ``folders`` and on all of them
     (printed; returned with each frame's features)."""
-    current = (fitting.RELIABLE_IOU, fitting.RELIABLE_EDGE_DISTANCE_PX, fitting.RELIABLE_EDGE_SUPPORT)
     per_folder = {folder: features(frame_features(estimator, folder)) for folder in folders}
     if len(folders) > 1:
         per_folder["all"] = {k: np.concatenate([f[k] for f in per_folder.values()]) for k in per_folder[folders[0]]}
     results = {}
     for name, f in per_folder.items():
-        bad, flagged = f["add"] > bad_mm / 1000, flag(f, *current)
+        bad, flagged = f["add"] > bad_mm / 1000, flag(f, *SHIPPED)
         outside = flagged & ~bad & (f["inside"] < fitting.MIN_INSIDE)
         n_bad, caught, alarms = int(bad.sum()), int(flagged[bad].sum()), int((flagged & ~bad).sum())
         results[name] = {"frames": len(bad), "bad": n_bad, "caught": caught, "false_alarms": alarms,
                          "recall_95": _numbers(wilson(caught, n_bad)),
                          "false_alarms_95": _numbers(wilson(alarms, len(bad) - n_bad)),
                          "features": {k: _numbers(v) for k, v in f.items()}}  # fmt: skip
-        print(f"{name}: {len(bad)} frames, {bad.sum()} with ADD > {bad_mm:g} mm; the flag as shipped {current}:")
+        print(f"{name}: {len(bad)} frames, {bad.sum()} with ADD > {bad_mm:g} mm; the flag as shipped {SHIPPED}:")
         print(f"  recall {share_text(caught, n_bad)}")
         print(f"  false alarms {share_text(alarms, len(bad) - n_bad)}"
               f", {outside.sum()} of them with less than half the robot in the image")  # fmt: skip
@@ -141,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     def run() -> int:
         torch.set_num_threads(args.threads)
         estimator = load_estimator(device="cpu")
+        for folder in [*args.check, *args.data]:  # a bad folder refused before any frame is fitted
+            open_dataset(folder, estimator.robot)
         if args.check:
             results = check(estimator, args.check, args.bad_mm)
             if args.json:
@@ -160,14 +162,15 @@ def main(argv: list[str] | None = None) -> int:
             rule = f"IoU >= {iou:.2f}, edge distance <= {edge_px:.2f} px, support >= {support:.2f}"
             rule += f", spread <= {spread:g} mm"
             print(f"  {rule}: recall {-100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
-        current = (fitting.RELIABLE_IOU, fitting.RELIABLE_EDGE_DISTANCE_PX, fitting.RELIABLE_EDGE_SUPPORT)
-        recall, false_alarms = rates(flag(f, *current), bad)
-        print(f"the flag as shipped {current}: recall {100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
+        recall, false_alarms = rates(flag(f, *SHIPPED), bad)
+        print(f"the flag as shipped {SHIPPED}: recall {100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
         return 0
 
     args = p.parse_args(argv)
     if not args.data and not args.check:
         p.error("give --data (choose the thresholds) and/or --check (measure the shipped flag)")
+    if args.json and not args.check:
+        p.error("--json writes --check's figures: give --check FOLDER too")
     return run_reporting_errors(run, "reliable_flag")
 
 

@@ -267,6 +267,16 @@ def test_wilson_interval_holds_the_share_and_narrows_with_frames() -> None:
 def test_reliable_flag_asks_for_frames() -> None:
     with pytest.raises(SystemExit):
         load("reliable_flag").main([])
+    with pytest.raises(SystemExit):
+        load("reliable_flag").main(["--data", "somewhere", "--json", "flag.json"])  # --json needs --check
+
+
+def test_reliable_flag_refuses_a_missing_folder_before_fitting(tiny_dream: Path, tmp_path: Path, capsys) -> None:
+    """A bad --data folder is named before the --check frames are fitted (minutes of work)."""
+    missing = tmp_path / "nowhere"
+    assert load("reliable_flag").main(["--check", str(tiny_dream), "--data", str(missing)]) == 2
+    captured = capsys.readouterr()
+    assert "nowhere" in captured.err and "the flag as shipped" not in captured.out
 
 
 @pytest.mark.parametrize(
