@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -16,6 +17,7 @@ from monose3.perception.config import ParserConfig
 from monose3.perception.edges import edge_terms, find_edges
 from monose3.perception.fitting import Fit, best_fit, fit_pose, not_found, refine_coarse_to_fine
 from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_pose, view_around
+from monose3.perception.hypotheses import pnp_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.silhouette import Outline
 from monose3.perception.views import ViewEvidence
@@ -294,3 +296,15 @@ def test_a_parser_config_round_trips_through_its_dictionary():
 
     config = ParserConfig(input_size=(256, 192), decoder_width=32)
     assert parser_config(json.loads(json.dumps(asdict(config)))) == config
+
+
+def test_keypoints_clustered_in_a_few_pixels_give_no_pnp_pose_and_no_crash():
+    base = np.array([[0.0, 0, 0], [0, 0, 0.33], [0.08, 0, 0.6], [0, 0.1, 0.9], [0.2, 0.1, 0.7]])
+    K = np.array([[1000.0, 0, 160], [0, 1000, 120], [0, 0, 1]])
+    uv = np.array([[150.0, 100], [150.4, 100.2], [150.1, 100.5], [150.3, 99.8], [149.9, 100.1]])
+    with pytest.raises(cv2.error):  # what OpenCV's SQPnP does with such points
+        cv2.solvePnP(base[:4], uv[:4], K, None, flags=cv2.SOLVEPNP_SQPNP)
+    view = ViewEvidence(torch.zeros(240, 320), uv, np.ones(len(uv)), K, np.array([0.0, 0, 320, 240]))
+    assert all(np.isfinite(p).all() for p in pnp_hypotheses(view, base))
+    view4 = ViewEvidence(torch.zeros(240, 320), uv[:4], np.ones(4), K, np.array([0.0, 0, 320, 240]))
+    assert all(np.isfinite(p).all() for p in pnp_hypotheses(view4, base[:4]))

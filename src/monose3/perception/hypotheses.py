@@ -25,21 +25,32 @@ def pnp_hypotheses(view: ViewEvidence, keypoints_base: np.ndarray) -> list[np.nd
         return []
     obj, img = keypoints_base[good].astype(np.float64), view.keypoints[good].astype(np.float64)
     poses = []
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        obj, img, view.K, None, reprojectionError=PNP_ERROR_FRACTION * view.size[0], flags=cv2.SOLVEPNP_SQPNP
-    )
-    if ok and inliers is not None and len(inliers) >= 4:
-        idx = inliers[:, 0]
-        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], view.K, None, rvec, tvec)
-        poses.append(_pose(rvec, tvec))
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            obj, img, view.K, None, reprojectionError=PNP_ERROR_FRACTION * view.size[0], flags=cv2.SOLVEPNP_SQPNP
+        )
+        if ok and inliers is not None and len(inliers) >= 4:
+            idx = inliers[:, 0]
+            rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], view.K, None, rvec, tvec)
+            poses.append(_pose(rvec, tvec))
+    except cv2.error:  # see _sqpnp
+        pass
     subsets = [np.ones(len(obj), bool)]
     if len(obj) > 4:  # each keypoint left out in turn: one wrong keypoint then spoils one subset only
         subsets += [np.arange(len(obj)) != i for i in range(len(obj))]
-    for keep in subsets:
-        ok, rvec, tvec = cv2.solvePnP(obj[keep], img[keep], view.K, None, flags=cv2.SOLVEPNP_SQPNP)
-        if ok:
-            poses.append(_pose(rvec, tvec))
+    poses += [p for keep in subsets if (p := _sqpnp(obj[keep], img[keep], view.K)) is not None]
     return [p for p in poses if np.isfinite(p).all() and p[2, 3] > 0.05]
+
+
+def _sqpnp(obj: np.ndarray, img: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """SQPnP's pose, or None where it has none. OpenCV's SQPnP asserts (raises) instead of
+    failing when the image points all but coincide (keypoints the parser put within a few
+    pixels of each other, as on a small false detection): such keypoints carry no pose."""
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None
+    return _pose(rvec, tvec) if ok else None
 
 
 def _pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
