@@ -49,7 +49,7 @@ from monose3.errors import run_reporting_errors
 from monose3.perception import fitting
 from monose3.report.metrics import add_per_frame
 
-IOUS = np.round(np.arange(0.5, 0.951, 0.05), 2)
+IOUS = np.round(np.arange(0.3, 0.951, 0.05), 2)
 EDGE_DISTANCES_PX = np.round(np.arange(0.5, 1.51, 0.05), 2)
 SUPPORTS = (0.0, 0.2, 0.3, 0.4, 0.45, 0.5)
 SPREADS_MM = (2.0, 5.0, 10.0, 20.0, np.inf)

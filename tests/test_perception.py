@@ -20,7 +20,7 @@ from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_po
 from monose3.perception.hypotheses import pnp_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.silhouette import Outline
-from monose3.perception.views import ViewEvidence
+from monose3.perception.views import ViewEvidence, image_tensor, parse_view
 from monose3.training.checkpoints import load_parser
 from monose3.training.formats import BUNDLED_PARSER
 
@@ -182,6 +182,23 @@ def test_refinement_ignores_what_the_image_border_cuts(models, renderers, sample
     start = _moved(view.pose, 5, 3)
     refined = refine_coarse_to_fine(renderers["panda"], view.joints, start[None], evidence, kp)[0]
     assert _add(models["panda"], view.joints, refined, view.pose) < 0.015  # 180 mm when the border is an outline
+
+
+def test_the_mirrored_view_gives_the_mirrored_mask(parser, sample):
+    """The mask is the mean of the view's and its mirror's, so the parser's view of a mirrored
+    image is the mirror image of its view of the original (without the mean it is not)."""
+    image, K = sample
+    w = image.shape[1]
+    box = np.array([40.0, 20.0, 40.0 + 0.8 * w, 20.0 + 0.6 * w])
+    mirrored_box = np.array([w - box[2], box[1], w - box[0], box[3]])
+    original, mirrored = image_tensor(image), image_tensor(np.ascontiguousarray(image[:, ::-1]))
+    for mirror, tolerance in ((True, 1e-4), (False, None)):
+        a = parse_view(parser, original, K, box, mirror=mirror).mask
+        b = parse_view(parser, mirrored, K, mirrored_box, mirror=mirror).mask.flip(-1)
+        if tolerance:
+            assert (a - b).abs().max() < tolerance
+        else:
+            assert (a - b).abs().max() > 0.05
 
 
 def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):

@@ -66,14 +66,23 @@ def image_tensor(image: np.ndarray) -> torch.Tensor:
 
 
 @torch.no_grad()
-def parse_view(parser: RobotParser, image: torch.Tensor, K: np.ndarray, box: np.ndarray) -> ViewEvidence:
+def parse_view(parser: RobotParser, image: torch.Tensor, K: np.ndarray, box: np.ndarray,
+               mirror: bool = True) -> ViewEvidence:  # fmt: skip
     """Run the parser on ``box`` (edge coordinates; beyond the image is black, as padding) of
-    ``image`` ``[1, 3, H, W]``, resized to the parser's input with anti-aliasing."""
+    ``image`` ``[1, 3, H, W]``, resized to the parser's input with anti-aliasing. With
+    ``mirror``, the mask is the mean of the view's and its mirror image's (flipped back)."""
     size = parser.config.input_size
     device = next(parser.parameters()).device
     rois = torch.tensor([[0.0, *box]], dtype=torch.float32)
     view = roi_align(image, rois, (size[1], size[0]), 1.0, sampling_ratio=0, aligned=True)
-    mask_logits, kp_logits = parser(view.to(device))
+    if mirror:
+        # Test-time augmentation: the parser's errors on a view and on its mirror image are
+        # partly independent, so their mean is a better mask (benchmarks/accuracy.py). Only the
+        # mask: a robot's keypoints may come in left/right pairs that a mirror swaps.
+        mask_logits, kp_logits = parser(torch.cat([view, view.flip(-1)]).to(device))
+        mask_logits, kp_logits = (mask_logits[:1] + mask_logits[1:].flip(-1)) / 2, kp_logits[:1]
+    else:
+        mask_logits, kp_logits = parser(view.to(device))
     mask = F.interpolate(mask_logits, size=(size[1], size[0]), mode="bilinear", align_corners=False)
     uv, conf = decode_keypoints(kp_logits.float())
     K_view = crop_intrinsics(torch.from_numpy(K)[None], torch.from_numpy(box)[None].double(), size)[0].numpy()
