@@ -3,7 +3,8 @@
 Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are known:
 
 1. **Views.** The parser sees the whole image (padded to 4:3), then a zoomed view around the
-   mask it found, so a small robot is parsed at a useful resolution.
+   mask it found, so a small robot is parsed at a useful resolution; each view's mask is the
+   mean of the view's and its mirror image's (``views.parse_view``).
 2. **Hypotheses.** PnP (OpenCV's SQPnP in RANSAC, and on leave-one-out subsets) from the
    keypoints, any poses the caller brings (a prior), and orientations over the sphere placed
    where the mask is and as large as it is (the fallback when PnP fails); ``hypotheses.py``.
@@ -89,9 +90,9 @@ CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
 # not come from the parser), or when less than MIN_INSIDE of the robot lies in the image (too
 # little to fit to). Chosen on 820 frames of their own (benchmarks/reliable_flag.py: generate
 # --renderer tiny, seeds 3003-8008) for at least 91 % recall of estimates off by more than
-# 30 mm (a margin over the goal's 90 %) at the fewest false alarms; the refined hypotheses'
-# spread adds nothing. reliable_flag.py --check measures it on 400 frames generated after the
-# choice, benchmarks/accuracy.py on the held-out sets.
+# 30 mm (a margin over the goal's 90 %) at the fewest false alarms (the same again with the
+# mirrored views' masks); the refined hypotheses' spread adds nothing. reliable_flag.py --check
+# measures it on 400 frames generated after the choice, benchmarks/accuracy.py on the held-out sets.
 RELIABLE_IOU = 0.5
 RELIABLE_EDGE_DISTANCE_PX = 0.8
 RELIABLE_EDGE_SUPPORT = 0.4
