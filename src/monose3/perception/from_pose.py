@@ -57,7 +57,7 @@ def track_pose(
     the view's PnP hypotheses, scored as the search scores them (a few small renders): between
     frames the robot can move further than a few iterations reach, and a lost track is found again.
     The view's mask is not mirror-averaged: on the held-out frames tracking was no more accurate
-    with it, and 15 % slower (benchmarks/accuracy.py)."""
+    with it, and 10 % slower (benchmarks/accuracy.py)."""
     view = view_around(parser, robot, image, K, joints, previous, mirror=False)
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
