@@ -24,28 +24,35 @@ def pnp_hypotheses(view: ViewEvidence, keypoints_base: np.ndarray) -> list[np.nd
     if good.sum() < 4:
         return []
     obj, img = keypoints_base[good].astype(np.float64), view.keypoints[good].astype(np.float64)
-    poses = []
-    try:
-        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-            obj, img, view.K, None, reprojectionError=PNP_ERROR_FRACTION * view.size[0], flags=cv2.SOLVEPNP_SQPNP
-        )
-        if ok and inliers is not None and len(inliers) >= 4:
-            idx = inliers[:, 0]
-            rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], view.K, None, rvec, tvec)
-            poses.append(_pose(rvec, tvec))
-    except cv2.error:  # see _sqpnp
-        pass
     subsets = [np.ones(len(obj), bool)]
     if len(obj) > 4:  # each keypoint left out in turn: one wrong keypoint then spoils one subset only
         subsets += [np.arange(len(obj)) != i for i in range(len(obj))]
-    poses += [p for keep in subsets if (p := _sqpnp(obj[keep], img[keep], view.K)) is not None]
-    return [p for p in poses if np.isfinite(p).all() and p[2, 3] > 0.05]
+    poses = [_ransac(obj, img, view.K, PNP_ERROR_FRACTION * view.size[0])]
+    poses += [_sqpnp(obj[keep], img[keep], view.K) for keep in subsets]
+    return [p for p in poses if p is not None and np.isfinite(p).all() and p[2, 3] > 0.05]
+
+
+# OpenCV's SQPnP asserts (raises) instead of failing when the image points all but coincide
+# (keypoints the parser put within a few pixels of each other, as on a small false detection):
+# such keypoints carry no pose, so both solvers below give None there.
+
+
+def _ransac(obj: np.ndarray, img: np.ndarray, K: np.ndarray, error_px: float) -> np.ndarray | None:
+    """SQPnP in RANSAC (inliers within ``error_px``), refined by LM on its inliers; None where it fails."""
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            obj, img, K, None, reprojectionError=error_px, flags=cv2.SOLVEPNP_SQPNP
+        )
+        if not ok or inliers is None or len(inliers) < 4:
+            return None
+        idx = inliers[:, 0]
+        return _pose(*cv2.solvePnPRefineLM(obj[idx], img[idx], K, None, rvec, tvec))
+    except cv2.error:
+        return None
 
 
 def _sqpnp(obj: np.ndarray, img: np.ndarray, K: np.ndarray) -> np.ndarray | None:
-    """SQPnP's pose, or None where it has none. OpenCV's SQPnP asserts (raises) instead of
-    failing when the image points all but coincide (keypoints the parser put within a few
-    pixels of each other, as on a small false detection): such keypoints carry no pose."""
+    """SQPnP's pose on all of the points, or None where it has none."""
     try:
         ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
     except cv2.error:
