@@ -4,7 +4,8 @@ Rows (one per stage, each adding to the one above): the paper's reverse diffusio
 (RevDiff, 5 DDIM + 5 direct steps); the robot parser with PnP (hypotheses scored by silhouette
 IoU, no sphere search, no refinement); + the coarse search over the sphere; + the silhouette
 and keypoint refinement on the mask alone; + the image's edges in its fine pass; + the local
-search on the silhouette's score between the passes (the default).
+search on the silhouette's score between the passes; + the restarts in depth from the best
+refined pose (the default).
 Per row and set: AUC of ADD (0-100 mm), median ADD, CPU seconds per image (with the stages'
 split for the default). Then:
 
@@ -47,7 +48,7 @@ from monose3.perception.from_pose import refine_from
 from monose3.report.metrics import add_per_frame, auc
 
 STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ mask refinement", "+ edges",
-          "+ local search (default)")  # fmt: skip
+          "+ local search", "+ restarts in depth (default)")  # fmt: skip
 
 
 def frame_add(estimator, frame, pose: np.ndarray) -> float:
@@ -64,12 +65,12 @@ def run_stage(estimator, frame, image, stage: str) -> tuple[np.ndarray, dict, bo
         est = estimator.estimate([image], frame.K[None], frame.joints[None], sampler="revdiff")
         pose = est.poses[0] if est.in_view[0] else np.full((4, 4), np.nan)
         return pose, {"total": time.perf_counter() - tick}, True
-    options = {STAGES[1]: (False, False, False, False), STAGES[2]: (True, False, False, False),
-               STAGES[3]: (True, True, False, False), STAGES[4]: (True, True, True, False),
-               STAGES[5]: (True, True, True, True)}[stage]  # fmt: skip
-    sphere, refine, edges, search = options
+    # sphere, refine, edges, search, restart: each stage turns on one more
+    options = [(False,) * 5, (True, False, False, False, False), (True, True, False, False, False),
+               (True, True, True, False, False), (True, True, True, True, False), (True,) * 5]  # fmt: skip
+    sphere, refine, edges, search, restart = options[STAGES.index(stage) - 1]
     args = (estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
-    fit = fit_pose(*args, sphere=sphere, refine=refine, edges=edges, search=search)
+    fit = fit_pose(*args, sphere=sphere, refine=refine, edges=edges, search=search, restart=restart)
     doubts = fit_doubts(fit, estimator.robot, frame.joints, frame.K, image.shape)
     return fit.pose, {**fit.timings, "total": sum(fit.timings.values())}, bool(doubts)
 
@@ -147,13 +148,14 @@ def summarise(adds, seconds, flagged, refine, tracking, bad_m: float) -> dict:
 
 def print_report(results: dict[str, dict], args) -> None:
     names = list(results)
-    print(f"{'stage':<26}" + "".join(f"{n + ' AUC':>22}{'median mm':>11}{'s/img':>7}" for n in names))
+    width = max(map(len, STAGES)) + 1
+    print(f"{'stage':<{width}}" + "".join(f"{n + ' AUC':>22}{'median mm':>11}{'s/img':>7}" for n in names))
     for stage in STAGES:
         cells = []
         for n in names:
             row = results[n]["stages"][stage]
             cells.append(f"{row['auc']:>22.2f}{row['median_add_mm']:>11.1f}{row['seconds']['total']:>7.2f}")
-        print(f"{stage:<26}" + "".join(cells))
+        print(f"{stage:<{width}}" + "".join(cells))
     for n in names:
         r = results[n]
         split = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"][STAGES[-1]]["seconds"].items())

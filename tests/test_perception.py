@@ -10,12 +10,21 @@ import torch
 import monose3
 from monose3.apps.cli import main
 from monose3.errors import Monose3Error
+from monose3.geometry.camera import project
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
 from monose3.perception.edges import edge_terms, find_edges
-from monose3.perception.fitting import Fit, best_fit, fit_pose, not_found, refine_coarse_to_fine
+from monose3.perception.fitting import (
+    Fit,
+    best_fit,
+    depth_restarts,
+    fit_pose,
+    not_found,
+    refine_coarse_to_fine,
+    restarted_fit,
+)
 from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_pose, view_around
 from monose3.perception.hypotheses import pnp_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
@@ -206,12 +215,39 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     image, K = sample
     joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
     fit = fit_pose(parser, renderers["panda"], models["panda"], image, K, joints)
-    assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "score"}
+    assert fit.found and fit.iou > 0.9 and set(fit.timings) == {"parse", "search", "refine", "restart"}
     assert 0.5 < fit.edge_support <= 1 and 0 < fit.edge_distance_px < 0.8 and 0 <= fit.spread_mm < 5
     tracked = track_pose(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 3, 2))
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
     refined = refine_from(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 5, 3))
-    assert _add(models["panda"], joints, refined.pose, fit.pose) < 0.005 and len(refined.candidates) == 3
+    assert _add(models["panda"], joints, refined.pose, fit.pose) < 0.005 and len(refined.candidates) == 2
+
+
+def test_the_restarts_start_either_side_along_the_line_of_sight():
+    axis = np.array([0.3, -1.0, 0.2]) / np.linalg.norm([0.3, -1.0, 0.2])
+    pose = make_pose(axis_angle_to_matrix(axis, 0.8), np.array([0.2, -0.1, 2.0]))
+    pivot, K = np.array([0.1, 0.0, 0.5]), np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]])
+    starts = depth_restarts(pose, pivot, 0.02)
+    cam = starts[:, :3, :3] @ pivot + starts[:, :3, 3]
+    original = pose[:3, :3] @ pivot + pose[:3, 3]
+    np.testing.assert_allclose(cam[:, 2] / original[2], [0.98, 1.02])
+    np.testing.assert_allclose(project(cam, K), np.repeat(project(original[None], K), 2, 0), atol=1e-9)
+    np.testing.assert_array_equal(starts[:, :3, :3], np.stack([pose[:3, :3]] * 2))
+
+
+def test_restarts_from_a_fit_off_in_depth_end_on_the_fit(parser, renderers, models, sample):
+    """From the fit moved DEPTH_RESTART of its distance further (over 2 cm off), the restarts
+    start on the fit and twice as far off: both end on the fit, close together."""
+    image, K = sample
+    robot, joints = models["panda"], monose3.load_joints(SAMPLE / "joints.json", models["panda"])
+    fit = fit_pose(parser, renderers["panda"], robot, image, K, joints)
+    pivot = robot.centroid(robot.surface_points(joints[None])[0])
+    further = depth_restarts(fit.pose, pivot)[1]
+    assert _add(robot, joints, further, fit.pose) > 0.02
+    kp = robot.keypoints(joints[None])[0]
+    restarted = restarted_fit(renderers["panda"], joints, further[None], fit.view, kp, pivot)
+    assert len(restarted.candidates) == 2 and restarted.spread_mm < 5
+    assert _add(robot, joints, restarted.pose, fit.pose) < 0.003
 
 
 def test_a_lost_track_is_found_again(parser, renderers, models, sample):
@@ -284,10 +320,12 @@ def test_fit_doubts_name_each_failed_check(sample):
     view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), sample[1], np.array([0.0, 0, 4, 4]))
     fit = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None], edge_support=0.8, edge_distance_px=0.5)
     assert fit.doubts() == []
-    doubted = Fit(np.eye(4), 0.45, 1.0, 0.4, view, np.eye(4)[None], edge_support=0.2, edge_distance_px=1.3)
+    doubted = Fit(np.eye(4), 0.45, 1.0, 0.4, view, np.eye(4)[None], edge_support=0.1, edge_distance_px=1.3,
+                  spread_mm=35.0)  # fmt: skip
     reasons = doubted.doubts()
-    assert len(reasons) == 3 and "IoU 0.45 < 0.5" in reasons[0] and "1.30 px off the image's edges" in reasons[1]
-    assert reasons[2] == "20 % of the outline on the image's edges < 40 %"
+    assert len(reasons) == 4 and "IoU 0.45 < 0.5" in reasons[0] and "1.30 px off the image's edges" in reasons[1]
+    assert reasons[2] == "10 % of the outline on the image's edges < 20 %"
+    assert reasons[3] == "restarts in depth ended 35 mm apart > 20 mm"
     no_edges = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None])  # a flat image: nothing confirms the outline
     assert no_edges.doubts() == ["no image edge along the outline"]
     assert not_found(view).doubts() == ["the robot was not found"]

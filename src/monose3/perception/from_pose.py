@@ -15,6 +15,7 @@ from monose3.perception.fitting import (
     best_hypotheses,
     not_found,
     refine_coarse_to_fine,
+    restarted_fit,
 )
 from monose3.perception.hypotheses import pnp_hypotheses
 from monose3.perception.local_search import DEFAULT_SEARCH
@@ -69,13 +70,14 @@ def track_pose(
 
 def refine_from(parser: RobotParser, renderer: RobotRenderer, robot: RobotModel, image: np.ndarray,
                 K: np.ndarray, joints: np.ndarray, start: np.ndarray) -> Fit:  # fmt: skip
-    """The default pipeline's refinement (``refine_coarse_to_fine`` with the local search) from
-    the one pose ``start``, in the parser's :func:`view_around` it: what ``benchmarks/accuracy.py``
-    measures the refinement by, and a way to refine a pose known roughly (an earlier calibration)."""
+    """The default pipeline's refinement (``refine_coarse_to_fine`` with the local search, then
+    ``restarted_fit``) from the one pose ``start``, in the parser's :func:`view_around` it: what
+    ``benchmarks/accuracy.py`` measures the refinement by, and a way to refine a pose known
+    roughly (an earlier calibration)."""
     view = view_around(parser, robot, image, K, joints, start)
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
     kp_base = robot.keypoints(joints[None])[0]
     pivot = robot.centroid(robot.surface_points(joints[None])[0])
     poses = refine_coarse_to_fine(renderer, joints, start[None], view, kp_base, search=DEFAULT_SEARCH, pivot=pivot)
-    return best_fit(renderer, joints, poses, view, kp_base)
+    return restarted_fit(renderer, joints, poses, view, kp_base, pivot)
