@@ -121,10 +121,10 @@ class Fit:
     keypoint_error: float  # mean reprojection error of confident keypoints, view pixels
     score: float
     view: ViewEvidence
-    candidates: np.ndarray  # [H, 4, 4] the refined hypotheses, best first
+    candidates: np.ndarray  # [H, 4, 4] the refined hypotheses (with the restarts: the two), best first
     edge_support: float = 0.0  # share of the pose's outline on the image's own edges, [0, 1]
     edge_distance_px: float = math.inf  # RMS distance of the outline to the image's edges, view pixels
-    spread_mm: float = 0.0  # mean keypoint distance of the other refined hypotheses (the restart) to the pose
+    spread_mm: float = 0.0  # mean keypoint distance of the other candidates (the other restart) to the pose
     found: bool = True
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
 
@@ -318,8 +318,8 @@ def fit_pose(
     poses = best_hypotheses(renderer, joints, np.stack(hyps), view, kp_base, KEEP_HYPOTHESES)
     clock.lap("search")
     if refine:
-        pivot = robot.centroid(surface)
         local = DEFAULT_SEARCH if search else None
+        pivot = robot.centroid(surface)
         poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base, edges=edges, search=local, pivot=pivot)
         clock.lap("refine")
     if refine and restart:
