@@ -83,7 +83,7 @@ COARSE_ITERATIONS = 12  # refinement at SCORE_SIZE, on the mask
 REFINE_ITERATIONS = 16  # then at the view's resolution, with the image's edges
 # Restarts (module step 7) from the best pose moved this share of its distance along the line
 # of sight, each way (benchmarks/accuracy.py; 200 hard frames of seed 5005: 63 -> 54 estimates
-# off by more than 30 mm, median 9.5 -> 8.4 mm).
+# off by more than 30 mm, median 9.5 -> 8.9 mm).
 DEPTH_RESTART = 0.02
 # With the edges, the mask's terms weigh this share of their weight, and the edges up to
 # EDGE_WEIGHT: where the image shows an edge it decides (benchmarks/accuracy.py).
