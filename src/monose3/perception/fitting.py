@@ -224,7 +224,7 @@ def depth_restarts(pose: np.ndarray, pivot: np.ndarray, share: float = DEPTH_RES
     robot, base frame) so that the pivot's depth is ``1 - share`` and ``1 + share`` of what it
     was and its pixel stays (module step 7)."""
     starts = np.stack([pose, pose])
-    starts[:, :3, 3] += np.array([[-share], [share]]) * (pose[:3, :3] @ pivot + pose[:3, 3])
+    starts[:, :3, 3] += np.array([[-share], [share]]) * transform_points(pose, pivot[None])
     return starts
 
 
