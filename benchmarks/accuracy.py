@@ -13,7 +13,7 @@ split for the default). Then:
   direction): the default pipeline's refinement alone (``from_pose.refine_from``: no PnP start),
   the share of frames that end closer than they started, start and
   final medians;
-* the ``reliable`` flag (``perception.fitting.fit_doubts``) against ADD > ``--bad-mm``: recall of
+* the ``reliable`` flag (``perception.reliability.fit_doubts``) against ADD > ``--bad-mm``: recall of
   the bad estimates and false alarms among the good ones;
 * tracking: ``PoseEstimator.track`` from the true pose moved by 2 cm / 3 deg per axis (images/s,
   median ADD, the share flagged reliable).
@@ -43,8 +43,9 @@ from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
 from monose3.geometry.rotations import axis_angle_to_matrix
-from monose3.perception.fitting import fit_doubts, fit_pose
+from monose3.perception.fitting import fit_pose
 from monose3.perception.from_pose import refine_from
+from monose3.perception.reliability import fit_doubts
 from monose3.report.metrics import add_per_frame, auc
 
 STAGES = ("paper: revdiff 5+5", "parser + PnP", "+ sphere search", "+ mask refinement", "+ edges",

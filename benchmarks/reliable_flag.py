@@ -1,10 +1,11 @@
 """How the ``reliable`` flag of the default pipeline is chosen: its thresholds (silhouette IoU,
 the RMS distance of the outline to the image's own edges, the share of the outline on them,
-how far apart the restarts in depth end) on frames of their own, for a target recall of bad
-estimates (ADD > ``--bad-mm``) at the fewest false alarms.
+how far apart the restarts in depth end, the depth a pixel of the robot's size in the image
+stands for) on frames of their own, for a target recall of bad estimates (ADD > ``--bad-mm``)
+at the fewest false alarms.
 
 Prints the best thresholds found on ``--data`` (the fewest false alarms at ``--recall`` or
-more) and how the flag with the thresholds in ``perception/fitting.py`` does there. The frames
+more) and how the flag with the thresholds in ``perception/reliability.py`` does there. The frames
 must not be the held-out sets the README reports on (``benchmarks/accuracy.py`` measures the
 flag there). ``--check`` measures the flag as shipped, with 95 % (Wilson) intervals, on frames
 that had no part in choosing it (no search there, so nothing is tuned on them): the 60 frames
@@ -17,7 +18,8 @@ thresholds chosen on the first 420 frames (IoU 0.6) giving 12.6 % false alarms o
 they then joined the choice, and 400 frames generated after it (9009, 10010) check it. The
 choice was made again with the mirrored views' masks (``views.parse_view``; the same
 thresholds) and with the restarts in depth (``fitting.restarted_fit``: their spread came in,
-the edge support went from 0.4 to 0.2), and the check run again each time:
+the edge support went from 0.4 to 0.2) and with the depth per pixel (``reliability.depth_per_pixel_mm``:
+it came in, the spread went from 20 to 40 mm), and the check run again each time:
 
     monose3 generate --out data/calib_hard_tiny --num 80 --seed 3003 --profile hard --renderer tiny
     monose3 generate --out data/calib_reallike_tiny --num 40 --seed 4004 --profile reallike --renderer tiny
@@ -48,42 +50,46 @@ from monose3 import atomic
 from monose3.api import load_estimator
 from monose3.data.datasets import open_dataset
 from monose3.errors import run_reporting_errors
-from monose3.perception import fitting
+from monose3.perception import fitting, reliability
 from monose3.report.metrics import add_per_frame
 
 IOUS = np.round(np.arange(0.3, 0.951, 0.05), 2)
 EDGE_DISTANCES_PX = np.round(np.arange(0.5, 1.51, 0.05), 2)
 SUPPORTS = (0.0, 0.2, 0.3, 0.4, 0.45, 0.5)
 SPREADS_MM = (10.0, 15.0, 20.0, 25.0, 30.0, 40.0, 60.0, np.inf)
+DEPTHS_PER_PIXEL_MM = (*np.arange(20.0, 60.1, 2.0), np.inf)
 SHIPPED = (
-    fitting.RELIABLE_IOU,
-    fitting.RELIABLE_EDGE_DISTANCE_PX,
-    fitting.RELIABLE_EDGE_SUPPORT,
-    fitting.RELIABLE_SPREAD_MM,
+    reliability.RELIABLE_IOU,
+    reliability.RELIABLE_EDGE_DISTANCE_PX,
+    reliability.RELIABLE_EDGE_SUPPORT,
+    reliability.RELIABLE_SPREAD_MM,
+    reliability.RELIABLE_DEPTH_PER_PIXEL_MM,
 )
 
 
-def frame_features(estimator, folder: str) -> list[dict]:
-    """Per frame: the default fit's ADD (m), IoU, edge distance (px), edge support, hypotheses'
-    spread (mm), robot share in the image."""
-    frames = open_dataset(folder, estimator.robot)
+def frame_features(estimator, frames, name: str) -> list[dict]:
+    """Per frame of ``frames`` (a dataset; ``name`` for the progress bar): the default fit's
+    ADD (m), IoU, edge distance (px), edge support, restarts' spread (mm), robot share in the
+    image, depth per pixel (mm)."""
     rows = []
-    for i in tqdm(range(len(frames)), desc=folder):
+    for i in tqdm(range(len(frames)), desc=name):
         frame = frames[i]
         image = frame.load_image()
         fit = fitting.fit_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
         pred = estimator.robot.keypoints(frame.joints[None], fit.pose[None])  # NaN when not found: ADD inf
-        inside = fitting.inside_fraction(estimator.robot, fit.pose, frame.joints, frame.K, image.shape)  # 0 then
+        inside = reliability.inside_fraction(estimator.robot, fit.pose, frame.joints, frame.K, image.shape)  # 0 then
+        depth_mm = reliability.depth_per_pixel_mm(estimator.robot, fit.pose, frame.joints, frame.K)  # inf then
         rows.append({"add": float(add_per_frame(pred, frame.keypoints_3d[None])[0]), "iou": fit.iou,
                      "edge_distance": fit.edge_distance_px, "support": fit.edge_support, "spread": fit.spread_mm,
-                     "inside": inside})  # fmt: skip
+                     "inside": inside, "depth_per_pixel": depth_mm})  # fmt: skip
     return rows
 
 
-def flag(f: dict, iou: float, edge_px: float, support: float = 0.0, spread_mm: float = np.inf) -> np.ndarray:
-    """Unreliable, as ``fitting.fit_doubts`` decides it, for the thresholds given."""
-    return ((f["iou"] < iou) | ~(f["edge_distance"] <= edge_px) | (f["inside"] < fitting.MIN_INSIDE)
-            | (f["support"] < support) | (f["spread"] > spread_mm))  # fmt: skip
+def flag(f: dict, iou: float, edge_px: float, support: float = 0.0, spread_mm: float = np.inf,
+         depth_mm: float = np.inf) -> np.ndarray:  # fmt: skip
+    """Unreliable, as ``reliability.fit_doubts`` decides it, for the thresholds given."""
+    return ((f["iou"] < iou) | ~(f["edge_distance"] <= edge_px) | (f["inside"] < reliability.MIN_INSIDE)
+            | (f["support"] < support) | (f["spread"] > spread_mm) | (f["depth_per_pixel"] > depth_mm))  # fmt: skip
 
 
 def rates(flagged: np.ndarray, bad: np.ndarray) -> tuple[float, float]:
@@ -110,16 +116,17 @@ def features(rows: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.array([r[k] for r in rows], float) for k in rows[0]}
 
 
-def check(estimator, folders: list[str], bad_mm: float) -> dict:
-    """The shipped flag's recall and false alarms on each of ``folders`` and on all of them
-    (printed; returned with each frame's features)."""
-    per_folder = {folder: features(frame_features(estimator, folder)) for folder in folders}
+def check(estimator, datasets: dict, bad_mm: float) -> dict:
+    """The shipped flag's recall and false alarms on each of ``datasets`` (folder: frames) and
+    on all of them (printed; returned with each frame's features)."""
+    folders = list(datasets)
+    per_folder = {folder: features(frame_features(estimator, frames, folder)) for folder, frames in datasets.items()}
     if len(folders) > 1:
         per_folder["all"] = {k: np.concatenate([f[k] for f in per_folder.values()]) for k in per_folder[folders[0]]}
     results = {}
     for name, f in per_folder.items():
         bad, flagged = f["add"] > bad_mm / 1000, flag(f, *SHIPPED)
-        outside = flagged & ~bad & (f["inside"] < fitting.MIN_INSIDE)
+        outside = flagged & ~bad & (f["inside"] < reliability.MIN_INSIDE)
         n_bad, caught, alarms = int(bad.sum()), int(flagged[bad].sum()), int((flagged & ~bad).sum())
         results[name] = {"frames": len(bad), "bad": n_bad, "caught": caught, "false_alarms": alarms,
                          "recall_95": _numbers(wilson(caught, n_bad)),
@@ -130,6 +137,24 @@ def check(estimator, folders: list[str], bad_mm: float) -> dict:
         print(f"  false alarms {share_text(alarms, len(bad) - n_bad)}"
               f", {outside.sum()} of them with less than half the robot in the image")  # fmt: skip
     return results
+
+
+def choose(f: dict[str, np.ndarray], bad_mm: float, recall_goal: float) -> None:
+    """Print the five rules of the grid with the fewest false alarms at ``recall_goal`` or more
+    on the frames' features ``f``, and how the shipped rule does there."""
+    bad = f["add"] > bad_mm / 1000
+    print(f"{len(bad)} frames, {bad.sum()} with ADD > {bad_mm:g} mm")
+    found = []
+    for thresholds in itertools.product(IOUS, EDGE_DISTANCES_PX, SUPPORTS, SPREADS_MM, DEPTHS_PER_PIXEL_MM):
+        recall, false_alarms = rates(flag(f, *thresholds), bad)
+        if recall >= recall_goal:
+            found.append((false_alarms, -recall, *thresholds))
+    for false_alarms, recall, iou, edge_px, support, spread, depth in sorted(found)[:5]:
+        rule = f"IoU >= {iou:.2f}, edge distance <= {edge_px:.2f} px, support >= {support:.2f}"
+        rule += f", spread <= {spread:g} mm, depth per pixel <= {depth:g} mm"
+        print(f"  {rule}: recall {-100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
+    recall, false_alarms = rates(flag(f, *SHIPPED), bad)
+    print(f"the flag as shipped {SHIPPED}: recall {100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
 
 
 def _numbers(values) -> list[float | None]:
@@ -148,29 +173,17 @@ def main(argv: list[str] | None = None) -> int:
     def run() -> int:
         torch.set_num_threads(args.threads)
         estimator = load_estimator(device="cpu")
-        for folder in [*args.check, *args.data]:  # a bad folder refused before any frame is fitted
-            open_dataset(folder, estimator.robot)
+        # every folder opened first: a bad one is refused before any frame is fitted
+        datasets = {folder: open_dataset(folder, estimator.robot) for folder in [*args.check, *args.data]}
         if args.check:
-            results = check(estimator, args.check, args.bad_mm)
+            results = check(estimator, {folder: datasets[folder] for folder in args.check}, args.bad_mm)
             if args.json:
                 atomic.write_text(args.json, json.dumps(results, indent=1))
                 print(f"wrote {args.json}")
         if not args.data:
             return 0
-        f = features([row for folder in args.data for row in frame_features(estimator, folder)])
-        bad = f["add"] > args.bad_mm / 1000
-        print(f"{len(bad)} frames, {bad.sum()} with ADD > {args.bad_mm:g} mm")
-        found = []
-        for thresholds in itertools.product(IOUS, EDGE_DISTANCES_PX, SUPPORTS, SPREADS_MM):
-            recall, false_alarms = rates(flag(f, *thresholds), bad)
-            if recall >= args.recall:
-                found.append((false_alarms, -recall, *thresholds))
-        for false_alarms, recall, iou, edge_px, support, spread in sorted(found)[:5]:
-            rule = f"IoU >= {iou:.2f}, edge distance <= {edge_px:.2f} px, support >= {support:.2f}"
-            rule += f", spread <= {spread:g} mm"
-            print(f"  {rule}: recall {-100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
-        recall, false_alarms = rates(flag(f, *SHIPPED), bad)
-        print(f"the flag as shipped {SHIPPED}: recall {100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
+        f = features([row for folder in args.data for row in frame_features(estimator, datasets[folder], folder)])
+        choose(f, args.bad_mm, args.recall)
         return 0
 
     args = p.parse_args(argv)

@@ -28,6 +28,7 @@ from monose3.perception.fitting import (
 from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_pose, view_around
 from monose3.perception.hypotheses import pnp_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
+from monose3.perception.reliability import depth_per_pixel_mm, fit_doubts
 from monose3.perception.silhouette import Outline
 from monose3.perception.views import ViewEvidence, image_tensor, parse_view
 from monose3.training.checkpoints import load_parser
@@ -321,14 +322,50 @@ def test_fit_doubts_name_each_failed_check(sample):
     fit = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None], edge_support=0.8, edge_distance_px=0.5)
     assert fit.doubts() == []
     doubted = Fit(np.eye(4), 0.45, 1.0, 0.4, view, np.eye(4)[None], edge_support=0.1, edge_distance_px=1.3,
-                  spread_mm=35.0)  # fmt: skip
+                  spread_mm=45.0)  # fmt: skip
     reasons = doubted.doubts()
     assert len(reasons) == 4 and "IoU 0.45 < 0.5" in reasons[0] and "1.30 px off the image's edges" in reasons[1]
     assert reasons[2] == "10 % of the outline on the image's edges < 20 %"
-    assert reasons[3] == "restarts in depth ended 35 mm apart > 20 mm"
+    assert reasons[3] == "restarts in depth ended 45 mm apart > 40 mm"
     no_edges = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None])  # a flat image: nothing confirms the outline
     assert no_edges.doubts() == ["no image edge along the outline"]
     assert not_found(view).doubts() == ["the robot was not found"]
+
+
+def test_the_depth_per_pixel_is_the_depth_that_changes_the_robots_image_size_by_a_pixel(panda, sample):
+    """Moved along the line of sight by what ``depth_per_pixel_mm`` says, the robot's extent in
+    the image changes by one pixel; twice as far, a pixel is four times the depth."""
+    joints = np.zeros(len(panda.joint_names))
+    K = sample[1]
+    surface = panda.surface_points(joints[None])[0]
+    side_on = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # the robot upright in the image, seen from the side
+    pose = make_pose(side_on, np.array([0.0, 0.0, 2.0]) - side_on @ panda.centroid(surface))
+    extent = lambda p: np.ptp(project(surface @ p[:3, :3].T + p[:3, 3], K), axis=0).max()  # noqa: E731
+    step_mm = depth_per_pixel_mm(panda, pose, joints, K)
+    nearer = pose.copy()
+    nearer[2, 3] -= step_mm / 1000
+    assert extent(nearer) - extent(pose) == pytest.approx(1.0, rel=0.05)  # to first order: the robot has depth too
+    further = pose.copy()
+    further[2, 3] += 2.0
+    assert depth_per_pixel_mm(panda, further, joints, K) == pytest.approx(4 * step_mm, rel=0.05)
+    assert depth_per_pixel_mm(panda, np.full((4, 4), np.nan), joints, K) == np.inf
+
+
+def test_a_robot_too_small_for_its_distance_is_doubted(panda, sample):
+    """Far enough that a pixel of its size is more than 38 mm of depth, a fit that is otherwise
+    good is doubted, with the reason in words; near, it is not."""
+    joints, K = np.zeros(len(panda.joint_names)), sample[1]
+    view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), K, np.array([0.0, 0, 4, 4]))
+    centre = panda.centroid(panda.surface_points(joints[None])[0])
+    for z, doubted in ((1.5, False), (6.0, True)):
+        pose = make_pose(np.eye(3), np.array([0.0, 0.0, z]) - centre)
+        fit = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8, edge_distance_px=0.5)
+        reasons = fit_doubts(fit, panda, joints, K, (480, 640))
+        assert bool(reasons) == doubted
+        if doubted:
+            depth_mm = depth_per_pixel_mm(panda, pose, joints, K)
+            assert reasons == [f"a pixel of the robot's size in the image is {depth_mm:.0f} mm of depth > 38 mm: "
+                               "too small to fix its distance"]  # fmt: skip
 
 
 def test_missing_or_corrupt_parser_weights_are_named(tmp_path, capsys):

@@ -92,7 +92,7 @@ class PoseResult:
     def reliable(self) -> bool | None:
         """ "fit": whether the fit can be trusted: the silhouette fits the mask, its outline lies
         on the image's edges, its restarts in depth agree, and most of the robot is in the image
-        (``perception.fitting.RELIABLE_*``; :attr:`doubts` says which failed). The paper's
+        (``perception.reliability.RELIABLE_*``; :attr:`doubts` says which failed). The paper's
         samplers: whether the chains agree within ``UNRELIABLE_MM``; None with one chain (nothing
         to compare)."""
         if self.estimate.reliable is not None:

@@ -25,9 +25,10 @@ from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
 from monose3.method.scheduler import DDIMScheduler
 from monose3.method.update import apply_update, raw_to_update
-from monose3.perception.fitting import Fit, fit_doubts, fit_pose, pose_in_view
+from monose3.perception.fitting import Fit, fit_pose
 from monose3.perception.from_pose import track_pose
 from monose3.perception.parser import RobotParser
+from monose3.perception.reliability import fit_doubts, pose_in_view
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 

@@ -35,8 +35,9 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
 
 The restarts start from the refined hypothesis with the best final fit (IoU, keypoint residual,
 the outline's support by the image's edges), and the reported pose is the restart that fits
-best by the same score; the IoU is the confidence, and the flag reads the outline's distance
-to the image's edges too (:meth:`Fit.doubts`).
+best by the same score; the IoU is the confidence, and the ``reliable`` flag reads the
+outline's distance to the image's edges and the restarts' spread too (:meth:`Fit.doubts`;
+``reliability.py``).
 """
 
 from __future__ import annotations
@@ -56,6 +57,12 @@ from monose3.perception.edges import edge_agreement, edge_terms
 from monose3.perception.hypotheses import pnp_hypotheses, sphere_hypotheses
 from monose3.perception.local_search import DEFAULT_SEARCH, SearchConfig, search_locally
 from monose3.perception.parser import RobotParser
+from monose3.perception.reliability import (
+    RELIABLE_EDGE_DISTANCE_PX,
+    RELIABLE_EDGE_SUPPORT,
+    RELIABLE_IOU,
+    RELIABLE_SPREAD_MM,
+)
 from monose3.perception.silhouette import (
     OUTLINE_SCALE,
     Outline,
@@ -96,20 +103,6 @@ EDGE_SUPPORT_SCORE = 0.5
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
 KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
 CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
-# The fit flags an estimate unreliable when its silhouette fits the mask poorly, or its outline
-# lies off the image's edges or too little of it on them (a fit to a wrong mask: the edges do
-# not come from the parser), or its restarts in depth end far apart (the image does not fix
-# its depth), or when less than MIN_INSIDE of the robot lies in the image (too little to fit
-# to). Chosen on 820 frames of their own (benchmarks/reliable_flag.py: generate --renderer
-# tiny, seeds 3003-8008) for at least 91 % recall of estimates off by more than 30 mm (a
-# margin over the goal's 90 %) at the fewest false alarms: 91.9 % and 5.4 % there (the edge
-# support at 0 or 0.2 alike: the stricter kept). reliable_flag.py --check measures it on 400
-# frames generated after the choice, benchmarks/accuracy.py on the held-out sets.
-RELIABLE_IOU = 0.5
-RELIABLE_EDGE_DISTANCE_PX = 0.8
-RELIABLE_EDGE_SUPPORT = 0.2
-RELIABLE_SPREAD_MM = 20.0
-MIN_INSIDE = 0.5
 
 
 @dataclass
@@ -236,38 +229,6 @@ def restarted_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray
     best = best_fit(renderer, joints, poses, view, keypoints_base).pose
     ends = refine_poses(renderer, joints, depth_restarts(best, pivot), view, keypoints_base, REFINE_ITERATIONS, edges)
     return best_fit(renderer, joints, ends, view, keypoints_base)
-
-
-def inside_fraction(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> float:
-    """The share of the robot's surface points that ``pose`` puts in front of the camera and inside the image."""
-    if not np.isfinite(pose).all():
-        return 0.0
-    cam = robot.surface_points(joints[None])[0] @ pose[:3, :3].T + pose[:3, 3]
-    u, v = project(cam, K).T
-    h, w = image_shape[:2]
-    return float(np.mean((cam[:, 2] > 0) & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)))
-
-
-def fit_doubts(fit: Fit, robot: RobotModel, joints: np.ndarray, K: np.ndarray, image_shape) -> list[str]:
-    """:meth:`Fit.doubts`, and whether too little of the robot lies in the image to fit to."""
-    reasons = fit.doubts()
-    share = inside_fraction(robot, fit.pose, joints, K, image_shape) if fit.found else 1.0
-    if share < MIN_INSIDE:
-        reasons.append(f"only {100 * share:.0f} % of the robot in the image")
-    return reasons
-
-
-def pose_in_view(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray, image_shape) -> bool:
-    """Whether ``pose`` puts the robot's centroid in front of the camera and inside the image."""
-    if not np.isfinite(pose).all():
-        return False
-    centroid = robot.centroid(robot.surface_points(joints[None]))[0]
-    cam = pose[:3, :3] @ centroid + pose[:3, 3]
-    if cam[2] <= 0:
-        return False
-    u, v = project(cam[None], K)[0]
-    h, w = image_shape[:2]
-    return bool(-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5)
 
 
 def _stack_padded(arrays: list[np.ndarray]) -> torch.Tensor:
