@@ -11,7 +11,7 @@ import monose3
 from monose3.apps.cli import main
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import project
-from monose3.geometry.poses import make_pose
+from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
@@ -340,7 +340,7 @@ def test_the_depth_per_pixel_is_the_depth_that_changes_the_robots_image_size_by_
     surface = panda.surface_points(joints[None])[0]
     side_on = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # the robot upright in the image, seen from the side
     pose = make_pose(side_on, np.array([0.0, 0.0, 2.0]) - side_on @ panda.centroid(surface))
-    extent = lambda p: np.ptp(project(surface @ p[:3, :3].T + p[:3, 3], K), axis=0).max()  # noqa: E731
+    extent = lambda p: np.ptp(project(transform_points(p, surface), K), axis=0).max()  # noqa: E731
     step_mm = depth_per_pixel_mm(panda, pose, joints, K)
     nearer = pose.copy()
     nearer[2, 3] -= step_mm / 1000
