@@ -30,7 +30,7 @@ from monose3.perception.hypotheses import pnp_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.reliability import depth_per_pixel_mm, fit_doubts
 from monose3.perception.silhouette import Outline
-from monose3.perception.views import ViewEvidence, image_tensor, parse_view
+from monose3.perception.views import MIN_MASK_FRACTION, ViewEvidence, full_box, image_tensor, parse_image, parse_view
 from monose3.training.checkpoints import load_parser
 from monose3.training.formats import BUNDLED_PARSER
 
@@ -210,6 +210,30 @@ def test_the_mirrored_view_gives_the_mirrored_mask(parser, sample):
 
     assert mismatch(True) < 1e-4
     assert mismatch(False) > 0.05
+
+
+def test_a_small_robot_is_parsed_in_a_view_zoomed_on_it(parser, sample):
+    """The sample placed in the middle of a grey image three times as large: the robot is found
+    in the whole image, then parsed again in a box around it, not in the whole image."""
+    image, K = sample
+    h, w = image.shape[:2]
+    canvas = np.full((3 * h, 3 * w, 3), 127, np.uint8)
+    canvas[h : 2 * h, w : 2 * w] = image
+    K_canvas = K.copy()
+    K_canvas[:2, 2] += [w, h]
+    view = parse_image(parser, canvas, K_canvas)
+    assert view.robot_fraction >= MIN_MASK_FRACTION
+    whole = full_box((3 * w, 3 * h), view.size[0] / view.size[1])
+    assert view.box[2] - view.box[0] < 0.5 * (whole[2] - whole[0])
+    assert view.box[0] < 2 * w and view.box[2] > w and view.box[1] < 2 * h and view.box[3] > h
+
+
+def test_an_image_without_a_robot_is_parsed_whole(parser):
+    view = parse_image(
+        parser, np.full((240, 320, 3), 127, np.uint8), np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    )
+    assert view.robot_fraction < MIN_MASK_FRACTION
+    np.testing.assert_allclose(view.box, full_box((320, 240), view.size[0] / view.size[1]))
 
 
 def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):

@@ -3,8 +3,8 @@
 Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are known:
 
 1. **Views.** The parser sees the whole image (padded to 4:3), then a zoomed view around the
-   mask it found, so a small robot is parsed at a useful resolution; each view's mask is the
-   mean of the view's and its mirror image's (``views.parse_view``).
+   mask it found, so a small robot is parsed at a useful resolution (``views.parse_image``);
+   each view's mask is the mean of the view's and its mirror image's (``views.parse_view``).
 2. **Hypotheses.** PnP (OpenCV's SQPnP in RANSAC, and on leave-one-out subsets) from the
    keypoints, any poses the caller brings (a prior), and orientations over the sphere placed
    where the mask is and as large as it is (the fallback when PnP fails); ``hypotheses.py``.
@@ -71,16 +71,7 @@ from monose3.perception.silhouette import (
     render_silhouettes,
     silhouette_ious,
 )
-from monose3.perception.views import (
-    MASK_THRESHOLD,
-    MIN_MASK_FRACTION,
-    ViewEvidence,
-    full_box,
-    image_tensor,
-    parse_view,
-    resized_view,
-    zoom_box,
-)
+from monose3.perception.views import MASK_THRESHOLD, MIN_MASK_FRACTION, ViewEvidence, parse_image, resized_view
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 
@@ -256,16 +247,9 @@ def fit_pose(
     the refinement / its local search / its restarts in depth, ``edges`` off refines on the
     mask alone (ablations)."""
     clock = _Clock()
-    size = parser.config.input_size
-    aspect = size[0] / size[1]
-    tensor = image_tensor(image)
-    view = parse_view(parser, tensor, K, full_box((image.shape[1], image.shape[0]), aspect))
+    view = parse_image(parser, image, K)
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
-    box = zoom_box(view, aspect)
-    if box is not None:
-        zoomed = parse_view(parser, tensor, K, box)
-        view = zoomed if zoomed.robot_fraction >= MIN_MASK_FRACTION else view
     clock.lap("parse")
     kp_base = robot.keypoints(joints[None])[0]
     hyps = pnp_hypotheses(view, kp_base)

@@ -92,6 +92,23 @@ def parse_view(parser: RobotParser, image: torch.Tensor, K: np.ndarray, box: np.
                         K_view, np.asarray(box, np.float64), pixels, image_size)  # fmt: skip
 
 
+def parse_image(parser: RobotParser, image: np.ndarray, K: np.ndarray) -> ViewEvidence:
+    """The default pipeline's view of ``image`` (``[H, W, 3]`` uint8 RGB, intrinsics ``K``): the
+    whole image parsed, then the box around the mask it found where the robot is small in it
+    (:func:`zoom_box`), so a small robot is parsed at a useful resolution. The whole image's
+    view where the parser finds no robot there (``robot_fraction`` below
+    :data:`MIN_MASK_FRACTION`: the caller says so) or none in the zoomed box."""
+    size = parser.config.input_size
+    aspect = size[0] / size[1]
+    tensor = image_tensor(image)
+    view = parse_view(parser, tensor, K, full_box((image.shape[1], image.shape[0]), aspect))
+    box = zoom_box(view, aspect) if view.robot_fraction >= MIN_MASK_FRACTION else None
+    if box is None:
+        return view
+    zoomed = parse_view(parser, tensor, K, box)
+    return zoomed if zoomed.robot_fraction >= MIN_MASK_FRACTION else view
+
+
 def full_box(image_size: tuple[int, int], aspect: float) -> np.ndarray:
     """The whole image padded (right/bottom) to ``aspect`` (w/h), as the estimator standardises it."""
     w, h = image_size
