@@ -256,6 +256,26 @@ def test_reliable_flag_check_measures_without_searching(
     assert len(result["features"]["add"]) == result["frames"] > 0 and len(result["false_alarms_95"]) == 2
 
 
+def test_parser_masks_small(tiny_dream: Path, tmp_path: Path, capsys, keep_threads: None) -> None:
+    """The mask IoU per frame and its summary, printed and in the JSON; no fit without --fit."""
+    out_json = tmp_path / "masks.json"
+    assert load("parser_masks").main(["--data", str(tiny_dream), "--limit", "2", "--json", str(out_json)]) == 0
+    assert "mask IoU with the true silhouette" in capsys.readouterr().out
+    result = json.loads(out_json.read_text())[tiny_dream.name]
+    ious = [row["mask_iou"] for row in result["frames"]]
+    assert len(ious) == result["summary"]["frames"] == 2 and all(0 <= iou <= 1 for iou in ious)
+    assert "bands" not in result["summary"] and "add" not in result["frames"][0]
+
+
+def test_parser_masks_bands_split_the_frames_by_mask_iou() -> None:
+    masks = load("parser_masks")
+    rows = [{"mask_iou": iou, "add": add} for iou, add in [(0.5, 0.2), (0.85, 0.01), (0.95, 0.04), (1.0, 0.002)]]
+    bands = masks.summary(rows, bad_mm=30.0)["bands"]
+    assert [b["frames"] for b in bands] == [1, 1, 2]  # an IoU of 1 is in the top band
+    assert [b["bad"] for b in bands] == [1, 0, 1]
+    assert bands[2]["median_add_mm"] == pytest.approx(21.0)
+
+
 def test_wilson_interval_holds_the_share_and_narrows_with_frames() -> None:
     wilson = load("reliable_flag").wilson
     lo, hi = wilson(6, 41)
