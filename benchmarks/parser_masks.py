@@ -5,8 +5,9 @@ image, then zoomed on a small robot; mirror-averaged) with the robot's silhouett
 pose, rendered in the same view and compared inside the image, as ``silhouette.mask_ious``
 compares a fit's. The silhouette is the whole robot: where an occluder hides part of it, the
 parser is right to leave that part out, so on occluded frames the IoU is lower than the mask's
-own quality (a lower bound). With ``--fit``, the default fit on each frame too, and its ADD per
-band of mask IoU: how much of the error is the parser's.
+own quality (a lower bound). With ``--fit``, the default fit on each frame too, its ADD per
+band of mask IoU (how much of the error is the parser's), and, where the mask is fair, how
+often the true pose fits the mask better than the estimate (how much is the fit's).
 
     python benchmarks/parser_masks.py --data data/reallike_tiny data/hard_tiny --fit --json parser_masks.json
 """
@@ -32,6 +33,8 @@ from monose3.perception.views import MIN_MASK_FRACTION, parse_image
 from monose3.report.metrics import add_per_frame
 
 BANDS = ((0.0, 0.8), (0.8, 0.9), (0.9, 1.01))  # mask IoU bands the ADD is split by
+FAIR_MASK_IOU = 0.8
+TRUTH_BETTER_IOU = 0.01  # the true pose's IoU with the mask over the estimate's by more than this
 
 
 def frame_rows(estimator, folder: str, limit: int, fit: bool) -> list[dict]:
@@ -47,9 +50,10 @@ def frame_rows(estimator, folder: str, limit: int, fit: bool) -> list[dict]:
         found = view.robot_fraction >= MIN_MASK_FRACTION
         row = {"mask_iou": float(mask_ious(true, view)[0]) if found else 0.0}
         if fit:
-            pose = fit_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints).pose
-            pred = estimator.robot.keypoints(frame.joints[None], pose[None])  # NaN when not found: ADD inf
+            estimate = fit_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
+            pred = estimator.robot.keypoints(frame.joints[None], estimate.pose[None])  # NaN when not found: ADD inf
             row["add"] = float(add_per_frame(pred, frame.keypoints_3d[None])[0])
+            row["fit_iou"] = estimate.iou  # in the same view: the fit parses the image as above
         rows.append(row)
     return rows
 
@@ -62,6 +66,12 @@ def summary(rows: list[dict], bad_mm: float) -> dict:
     if "add" in rows[0]:
         add = np.array([r["add"] for r in rows]) * 1000
         out["bands"] = [band(iou, add, lo, hi, bad_mm) for lo, hi in BANDS]
+        # Where the mask is fair, does the true pose fit it better than the estimate? Then the
+        # estimate is not the mask's best fit: the search or the edges held it elsewhere.
+        fair, bad = iou >= FAIR_MASK_IOU, add > bad_mm
+        truth_better = iou > np.array([r["fit_iou"] for r in rows]) + TRUTH_BETTER_IOU
+        out["truth_fits_better"] = {name: [int((truth_better & fair & m).sum()), int((fair & m).sum())]
+                                    for name, m in (("bad", bad), ("good", ~bad))}  # fmt: skip
     return out
 
 
@@ -81,6 +91,11 @@ def print_summary(name: str, s: dict, bad_mm: float) -> None:
         median = "-" if band["median_add_mm"] is None else f"{band['median_add_mm']:.1f} mm"
         print(f"  mask IoU {lo:.1f}-{hi:.1f}: {band['frames']} frames, {band['bad']} with ADD > {bad_mm:g} mm, "
               f"median ADD {median}")  # fmt: skip
+    if "truth_fits_better" in s:
+        (bad_hits, bad_n), (good_hits, good_n) = s["truth_fits_better"]["bad"], s["truth_fits_better"]["good"]
+        print(f"  mask IoU {FAIR_MASK_IOU} or more: the true pose fits the mask better than the estimate"
+              f" (IoU over {TRUTH_BETTER_IOU} higher) for {bad_hits} of {bad_n} bad estimates,"
+              f" {good_hits} of {good_n} good ones")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
