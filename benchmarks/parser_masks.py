@@ -77,7 +77,7 @@ def summary(rows: list[dict], bad_mm: float) -> dict:
 
 def band(iou: np.ndarray, add_mm: np.ndarray, lo: float, hi: float, bad_mm: float) -> dict:
     m = (iou >= lo) & (iou < hi)
-    median = float(np.median(add_mm[m])) if m.any() else None
+    median = atomic.json_number(float(np.median(add_mm[m]))) if m.any() else None
     return {"mask_iou": [lo, min(hi, 1.0)], "frames": int(m.sum()), "bad": int((add_mm[m] > bad_mm).sum()),
             "median_add_mm": median}  # fmt: skip
 
@@ -116,7 +116,9 @@ def main(argv: list[str] | None = None) -> int:
         results = {}
         for folder in args.data:
             rows = frame_rows(estimator, folder, args.limit, args.fit)
-            results[Path(folder).name] = {"summary": summary(rows, args.bad_mm), "frames": rows}
+            # a robot not found has ADD inf, which strict JSON writes as null
+            frames = [{k: atomic.json_number(v) for k, v in row.items()} for row in rows]
+            results[Path(folder).name] = {"summary": summary(rows, args.bad_mm), "frames": frames}
             print_summary(Path(folder).name, results[Path(folder).name]["summary"], args.bad_mm)
         if args.json:
             atomic.write_text(args.json, json.dumps(results, indent=1))

@@ -269,12 +269,13 @@ def test_parser_masks_small(tiny_dream: Path, tmp_path: Path, capsys, keep_threa
 
 def test_parser_masks_split_the_frames_by_mask_iou_and_by_which_pose_fits_it_better() -> None:
     masks = load("parser_masks")
-    figures = [(0.5, 0.2, 0.6), (0.85, 0.01, 0.85), (0.95, 0.04, 0.9), (1.0, 0.002, 0.995)]
+    figures = [(0.5, 0.2, 0.6), (0.0, float("inf"), 0.0), (0.85, 0.01, 0.85), (0.95, 0.04, 0.9), (1.0, 0.002, 0.995)]
     rows = [{"mask_iou": iou, "add": add, "fit_iou": fit_iou} for iou, add, fit_iou in figures]
     summary = masks.summary(rows, bad_mm=30.0)
     bands = summary["bands"]
-    assert [b["frames"] for b in bands] == [1, 1, 2]  # an IoU of 1 is in the top band
-    assert [b["bad"] for b in bands] == [1, 0, 1]
+    assert [b["frames"] for b in bands] == [2, 1, 2]  # an IoU of 1 is in the top band
+    assert [b["bad"] for b in bands] == [2, 0, 1]  # a robot not found (ADD inf) is a bad estimate
+    assert bands[0]["median_add_mm"] is None  # inf: strict JSON has none
     assert bands[2]["median_add_mm"] == pytest.approx(21.0)
     # of the fair masks (0.8 or more): the bad estimate's truth fits 0.05 better, the good ones' not 0.01
     assert summary["truth_fits_better"] == {"bad": [1, 1], "good": [0, 2]}
