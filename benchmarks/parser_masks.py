@@ -37,12 +37,12 @@ FAIR_MASK_IOU = 0.8
 TRUTH_BETTER_IOU = 0.01  # the true pose's IoU with the mask over the estimate's by more than this
 
 
-def frame_rows(estimator, folder: str, limit: int, fit: bool) -> list[dict]:
-    """Per frame of ``folder`` (the first ``limit``): the mask's IoU with the true silhouette
-    (0 where the parser finds no robot) and, with ``fit``, the default fit's ADD (m)."""
-    frames = open_dataset(folder, estimator.robot)
+def frame_rows(estimator, frames, name: str, limit: int, fit: bool) -> list[dict]:
+    """Per frame of ``frames`` (a dataset, the first ``limit``; ``name`` for the progress bar):
+    the mask's IoU with the true silhouette (0 where the parser finds no robot) and, with
+    ``fit``, the default fit's ADD (m) and IoU."""
     rows = []
-    for i in tqdm(range(min(limit, len(frames))), desc=Path(folder).name):
+    for i in tqdm(range(min(limit, len(frames))), desc=name):
         frame = frames[i]
         image = frame.load_image()
         view = parse_image(estimator.parser, image, frame.K)
@@ -111,15 +111,14 @@ def main(argv: list[str] | None = None) -> int:
     def run() -> int:
         torch.set_num_threads(args.threads)
         estimator = load_estimator(device="cpu")
-        for folder in args.data:  # every folder opened first: a bad one is refused before any frame is parsed
-            open_dataset(folder, estimator.robot)
+        # every folder opened first: a bad one is refused before any frame is parsed
+        datasets = {Path(folder).name: open_dataset(folder, estimator.robot) for folder in args.data}
         results = {}
-        for folder in args.data:
-            rows = frame_rows(estimator, folder, args.limit, args.fit)
-            # a robot not found has ADD inf, which strict JSON writes as null
-            frames = [{k: atomic.json_number(v) for k, v in row.items()} for row in rows]
-            results[Path(folder).name] = {"summary": summary(rows, args.bad_mm), "frames": frames}
-            print_summary(Path(folder).name, results[Path(folder).name]["summary"], args.bad_mm)
+        for name, frames in datasets.items():
+            rows = frame_rows(estimator, frames, name, args.limit, args.fit)
+            strict = [{k: atomic.json_number(v) for k, v in row.items()} for row in rows]  # ADD inf: null
+            results[name] = {"summary": summary(rows, args.bad_mm), "frames": strict}
+            print_summary(name, results[name]["summary"], args.bad_mm)
         if args.json:
             atomic.write_text(args.json, json.dumps(results, indent=1))
             print(f"wrote {args.json}")
