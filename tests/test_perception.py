@@ -28,9 +28,24 @@ from monose3.perception.fitting import (
 from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_pose, view_around
 from monose3.perception.hypotheses import pnp_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
-from monose3.perception.reliability import depth_per_pixel_mm, fit_doubts
+from monose3.perception.reliability import (
+    RELIABLE_DEPTH_PER_PIXEL_MM,
+    RELIABLE_SPREAD_MM,
+    depth_per_pixel_mm,
+    fit_doubts,
+)
 from monose3.perception.silhouette import Outline
-from monose3.perception.views import MIN_MASK_FRACTION, ViewEvidence, full_box, image_tensor, parse_image, parse_view
+from monose3.perception.views import (
+    CONTEXT_SCALES,
+    MIN_MASK_FRACTION,
+    ViewEvidence,
+    full_box,
+    grown_box,
+    image_tensor,
+    logits_within,
+    parse_image,
+    parse_view,
+)
 from monose3.training.checkpoints import load_parser
 from monose3.training.formats import BUNDLED_PARSER
 
@@ -203,13 +218,28 @@ def test_the_mirrored_view_gives_the_mirrored_mask(parser, sample):
     mirrored_box = np.array([w - box[2], box[1], w - box[0], box[3]])
     original, mirrored = image_tensor(image), image_tensor(np.ascontiguousarray(image[:, ::-1]))
 
-    def mismatch(mirror: bool) -> float:
-        a = parse_view(parser, original, K, box, mirror=mirror).mask
-        b = parse_view(parser, mirrored, K, mirrored_box, mirror=mirror).mask.flip(-1)
+    def mismatch(mirror: bool, context: tuple[float, ...] = ()) -> float:
+        a = parse_view(parser, original, K, box, mirror, context).mask
+        b = parse_view(parser, mirrored, K, mirrored_box, mirror, context).mask.flip(-1)
         return float((a - b).abs().max())
 
     assert mismatch(True) < 1e-4
+    assert mismatch(True, CONTEXT_SCALES) < 1e-4  # the wider boxes share the view's centre
     assert mismatch(False) > 0.05
+
+
+def test_logits_over_a_wider_box_are_resampled_onto_the_box():
+    """A mask's logits that rise with the image's x over a box twice as wide, resampled onto the
+    inner box's view grid, give at each view pixel the x of that pixel's centre in the image."""
+    box = np.array([100.0, 50.0, 180.0, 110.0])
+    wide = grown_box(box, 2.0)
+    np.testing.assert_allclose(wide, [60.0, 20.0, 220.0, 140.0])
+    w, h = 40, 30  # the wide box's logits grid: 4 image pixels per cell
+    x_centres = wide[0] + (np.arange(w) + 0.5) * (wide[2] - wide[0]) / w
+    logits = torch.from_numpy(np.tile(x_centres, (h, 1)))[None, None].float()
+    resampled = logits_within(logits, wide, box, (16, 12))[0, 0].numpy()
+    expected = box[0] + (np.arange(16) + 0.5) * (box[2] - box[0]) / 16
+    np.testing.assert_allclose(resampled, np.tile(expected, (12, 1)), atol=1e-3)
 
 
 def test_a_small_robot_is_parsed_in_a_view_zoomed_on_it(parser, sample):
@@ -350,7 +380,7 @@ def test_fit_doubts_name_each_failed_check(sample):
     reasons = doubted.doubts()
     assert len(reasons) == 4 and "IoU 0.45 < 0.5" in reasons[0] and "1.30 px off the image's edges" in reasons[1]
     assert reasons[2] == "10 % of the outline on the image's edges < 20 %"
-    assert reasons[3] == "restarts in depth ended 45 mm apart > 40 mm"
+    assert reasons[3] == f"restarts in depth ended 45 mm apart > {RELIABLE_SPREAD_MM:g} mm"
     no_edges = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None])  # a flat image: nothing confirms the outline
     assert no_edges.doubts() == ["no image edge along the outline"]
     assert not_found(view).doubts() == ["the robot was not found"]
@@ -376,7 +406,7 @@ def test_the_depth_per_pixel_is_the_depth_that_changes_the_robots_image_size_by_
 
 
 def test_a_robot_too_small_for_its_distance_is_doubted(panda, sample):
-    """Far enough that a pixel of its size is more than 38 mm of depth, a fit that is otherwise
+    """Far enough that a pixel of its size is more depth than the flag allows, a fit that is otherwise
     good is doubted, with the reason in words; near, it is not."""
     joints, K = np.zeros(len(panda.joint_names)), sample[1]
     view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), K, np.array([0.0, 0, 4, 4]))
@@ -388,7 +418,8 @@ def test_a_robot_too_small_for_its_distance_is_doubted(panda, sample):
         assert bool(reasons) == doubted
         if doubted:
             depth_mm = depth_per_pixel_mm(panda, pose, joints, K)
-            assert reasons == [f"a pixel of the robot's size in the image is {depth_mm:.0f} mm of depth > 38 mm: "
+            assert reasons == [f"a pixel of the robot's size in the image is {depth_mm:.0f} mm of depth > "
+                               f"{RELIABLE_DEPTH_PER_PIXEL_MM:g} mm: "
                                "too small to fix its distance"]  # fmt: skip
 
 

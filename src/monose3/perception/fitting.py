@@ -3,8 +3,9 @@
 Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are known:
 
 1. **Views.** The parser sees the whole image (padded to 4:3), then a zoomed view around the
-   mask it found, so a small robot is parsed at a useful resolution (``views.parse_image``);
-   each view's mask is the mean of the view's and its mirror image's (``views.parse_view``).
+   mask it found, so a small robot is parsed at a useful resolution (``views.parse_image``),
+   with the context of wider boxes in its mask; each view's mask is the mean of the view's and
+   its mirror image's (``views.parse_view``).
 2. **Hypotheses.** PnP (OpenCV's SQPnP in RANSAC, and on leave-one-out subsets) from the
    keypoints, any poses the caller brings (a prior), and orientations over the sphere placed
    where the mask is and as large as it is (the fallback when PnP fails); ``hypotheses.py``.
