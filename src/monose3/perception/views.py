@@ -81,11 +81,11 @@ def parse_view(parser: RobotParser, image: torch.Tensor, K: np.ndarray, box: np.
     times wider (:data:`CONTEXT_SCALES`), resampled onto the view."""
     size = parser.config.input_size
     view, mask_logits, kp_logits = parse_box(parser, image, box, mirror)
-    mask = F.interpolate(mask_logits, size=(size[1], size[0]), mode="bilinear", align_corners=False)
+    mask = F.interpolate(mask_logits.float(), size=(size[1], size[0]), mode="bilinear", align_corners=False)
     masks = [mask]
     for wide in (grown_box(box, scale) for scale in context):
         masks.append(logits_within(parse_box(parser, image, wide, mirror)[1], wide, box, size))
-    mask = torch.stack(masks).float().sigmoid().mean(0)
+    mask = torch.stack(masks).sigmoid().mean(0)  # all float32: logits_within's are too
     uv, conf = decode_keypoints(kp_logits.float())
     K_view = crop_intrinsics(torch.from_numpy(K)[None], torch.from_numpy(box)[None].double(), size)[0].numpy()
     pixels = view[0].permute(1, 2, 0).numpy().astype(np.float32)
