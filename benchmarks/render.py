@@ -4,9 +4,10 @@ Usage: ``python benchmarks/render.py [--seconds S] [--batch 16] [--robot panda] 
 
 On the CPU: renders/s at 128x96 and 320x240 in batches of ``--batch`` (all torch threads),
 and pybullet TinyRenderer's renders/s over a pool of one process per core on the same jobs,
-in the same run; the ratio is the figure (goal >= 1.0x). On a GPU: renders/s in batches of
-256 (goals 20,000/s at 128x96 and 5,000/s at 320x240). Nothing is asserted: the numbers depend
-on the machine and on what else runs on it.
+in the same run; the ratio is the figure (goal >= 1.0x). Also the silhouettes alone
+(``RobotRenderer.silhouettes``, the fit's comparisons) against unshaded renders (mask and
+depth). On a GPU: renders/s in batches of 256 (goals 20,000/s at 128x96 and 5,000/s at
+320x240). Nothing is asserted: the numbers depend on the machine and on what else runs on it.
 """
 
 from __future__ import annotations
@@ -39,8 +40,10 @@ def make_jobs(model: RobotModel, size: tuple[int, int], n: int, seed: int = 0) -
     ]
 
 
-def torch_rate(renderer: RobotRenderer, jobs: list[RenderJob], batch: int, seconds: float, device: str) -> float:
-    """Renders per second over whole batches (after a warm-up batch)."""
+def torch_rate(renderer: RobotRenderer, jobs: list[RenderJob], batch: int, seconds: float, device: str,
+               what: str = "render") -> float:  # fmt: skip
+    """Renders per second over whole batches (after a warm-up batch): shaded (``render``), or
+    mask and depth (``unshaded``), or the mask alone (``silhouettes``)."""
     stacks = [
         tuple(
             torch.as_tensor(np.stack([getattr(j, f) for j in jobs[i : i + batch]]), device=device)
@@ -53,7 +56,10 @@ def torch_rate(renderer: RobotRenderer, jobs: list[RenderJob], batch: int, secon
 
     def one(k: int) -> None:
         pose, K, q = stacks[k % len(stacks)]
-        renderer.render(q, pose, K, size)
+        if what == "silhouettes":
+            renderer.silhouettes(q, pose, K, size)
+        else:
+            renderer.render(q, pose, K, size, shade=what == "render")
 
     one(0)
     if device == "cuda":
@@ -125,6 +131,14 @@ def main() -> int:
         ratio = f"{ours / ref:5.2f}x" if ref else "  n/a"
         ref_text = f"{ref:11.1f}" if ref else f"{'(no pybullet)':>11}"
         print(f"{size[0]:>4}x{size[1]:<3} {'cpu':>6} {args.batch:>5} {ours:9.1f} {ref_text} {ratio}  (goal >= 1.0x)")
+    for size in SIZES:
+        jobs = make_jobs(model, size, 4 * args.batch)
+        unshaded = torch_rate(renderer, jobs, args.batch, args.seconds, "cpu", "unshaded")
+        alone = torch_rate(renderer, jobs, args.batch, args.seconds, "cpu", "silhouettes")
+        print(
+            f"{size[0]:>4}x{size[1]:<3} silhouettes alone {alone:.1f}/s, unshaded renders {unshaded:.1f}/s:"
+            f" {alone / unshaded:.2f}x"
+        )
     if torch.cuda.is_available():
         for size in SIZES:
             jobs = make_jobs(model, size, 4 * GPU_BATCH)

@@ -188,6 +188,22 @@ def test_unshaded_renders_the_same_silhouette_and_depth(models, renderers, sampl
     assert torch.equal(shaded.mask, bare.mask) and torch.equal(shaded.depth, bare.depth)
 
 
+@pytest.mark.parametrize("robot", ["panda", "kuka"])
+def test_silhouettes_are_the_renders_masks(models, renderers, sample_view, robot, monkeypatch):
+    """The coverage-only path (the fit's silhouette comparisons) gives the mask :meth:`render`
+    gives, pixel for pixel: near and partly outside the image, in a batch, and across chunks."""
+    rng = np.random.default_rng(15)
+    views = [sample_view(models[robot], rng, dist=(0.4, 2.0)) for _ in range(6)]
+    poses = np.stack([v.pose for v in views])
+    poses[:2, 0, 3] += 0.4  # robots the image's right border cuts
+    args = ([v.joints for v in views], poses, [v.K for v in views], (160, 120))
+    masks = renderers[robot].render(*args, shade=False).mask
+    assert masks.any() and not masks.all()
+    assert torch.equal(renderers[robot].silhouettes(*args), masks)
+    monkeypatch.setattr("monose3.robot.rasterize.CHUNK", 5000)
+    assert torch.equal(renderers[robot].silhouettes(*args), masks)
+
+
 def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeypatch):
     renderer = RobotRenderer(models["panda"])
     views = [sample_view(models["panda"], np.random.default_rng(40 + i)) for i in range(4)]

