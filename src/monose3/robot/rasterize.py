@@ -134,11 +134,11 @@ def rasterize(
     skipped where ``cullable`` ``[F]`` (faces of closed, outward-wound meshes); the rest are
     drawn from both sides."""
     width, height = size
-    batch, verts = verts.shape[0], verts.float()
+    batch, verts, K = verts.shape[0], verts.float(), K.float()
     zbuf = torch.full((batch * height * width,), _EMPTY, dtype=torch.int64, device=verts.device)
     fold = lambda counts, table, ids: _scatter_chunk(zbuf, counts, table, ids, width)  # noqa: E731
-    _in_chunks(_candidates(verts, faces, K.float(), size, cullable), fold)
-    return _resolve(zbuf, verts, faces, K.float(), batch, size)
+    _in_chunks(_candidates(verts, faces, K, size, cullable), fold)
+    return _resolve(zbuf, verts, faces, K, batch, size)
 
 
 def rasterize_coverage(
