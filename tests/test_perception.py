@@ -20,6 +20,7 @@ from monose3.perception.fitting import (
     Fit,
     best_fit,
     depth_restarts,
+    distinct_poses,
     fit_pose,
     not_found,
     refine_coarse_to_fine,
@@ -276,6 +277,16 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     assert _add(models["panda"], joints, tracked.pose, fit.pose) < 0.01
     refined = refine_from(parser, renderers["panda"], models["panda"], image, K, joints, _moved(fit.pose, 5, 3))
     assert _add(models["panda"], joints, refined.pose, fit.pose) < 0.005 and len(refined.candidates) == 2
+
+
+def test_distinct_poses_keep_the_best_of_each_cluster():
+    base = np.array([[0.0, 0, 0], [0, 0, 0.5], [0.3, 0, 0.8]])
+    pose = make_pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
+    shifted = lambda mm: make_pose(np.eye(3), pose[:3, 3] + [mm / 1000, 0, 0])  # noqa: E731
+    poses = np.stack([pose, shifted(1.0), shifted(10.0), shifted(2.0)])
+    kept = distinct_poses(poses, np.array([0.5, 0.9, 0.7, 0.1]), base, min_mm=3.0)
+    np.testing.assert_allclose(kept, poses[[1, 2]])  # 1 mm beats 0 and 2 mm (within 3 mm of it), 10 mm stays
+    np.testing.assert_allclose(distinct_poses(poses, np.zeros(4), base, min_mm=0.5), poses)
 
 
 def test_the_restarts_start_either_side_along_the_line_of_sight():

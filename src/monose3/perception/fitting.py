@@ -23,7 +23,8 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
    image's border cuts the robot, the mask ends but the robot does not.
 5. **Local search.** ICP follows the nearest outline, which a wrong part of the mask can lead
    astray; a derivative-free search on the whole silhouette's score from each start and each
-   coarse result (``local_search.py``) gives the fine pass more starts.
+   coarse result (``local_search.py``) gives the fine pass more starts (those that are copies
+   of a better one to a few millimetres dropped: ``distinct_poses``).
 6. **Edges.** At the view's resolution the render's outline is also pulled onto the image's
    own edges (``perception/edges.py``), with the mask's terms weighted down: the coarse pass on
    the mask brought the fit into its basin, the edges give it sub-pixel precision.
@@ -87,6 +88,10 @@ DEPTH_RESTART = 0.02
 # With the edges, the mask's terms weigh this share of their weight, and the edges up to
 # EDGE_WEIGHT: where the image shows an edge it decides (benchmarks/accuracy.py).
 MASK_SHARE_WITH_EDGES = 0.3
+# Before the fine pass, poses closer than this (mean keypoint distance) are refined once: the
+# local search often returns its start unchanged, and the two coarse results often meet, so half
+# of the fine pass's six poses were copies (held-out frames: all six end within 5 mm in most).
+DISTINCT_MM = 3.0
 EDGE_WEIGHT = 1000.0
 KEYPOINT_PENALTY = 2.0  # score = IoU - this * (keypoint error / view width)
 # The final choice adds this times the outline's edge support: of two refined hypotheses that fit
@@ -201,7 +206,21 @@ def refine_coarse_to_fine(renderer: RobotRenderer, joints: np.ndarray, poses: np
     if search is not None:
         score = lambda trials: hypothesis_scores(renderer, joints, trials, view, keypoints_base, search.size)  # noqa: E731
         refined = np.concatenate([refined, search_locally(np.concatenate([poses, refined]), score, pivot, search)])
+        refined = distinct_poses(refined, score(refined), keypoints_base)
     return refine_poses(renderer, joints, refined, view, keypoints_base, fine, edges)
+
+
+def distinct_poses(poses: np.ndarray, scores: np.ndarray, keypoints_base: np.ndarray,
+                   min_mm: float = DISTINCT_MM) -> np.ndarray:  # fmt: skip
+    """``poses`` ``[H, 4, 4]`` best first by ``scores``, without those whose keypoints lie within
+    ``min_mm`` (mean distance) of a better pose's: they would end where it ends."""
+    order = np.argsort(-scores, kind="stable")
+    cam = transform_points(poses[order], keypoints_base)
+    kept: list[int] = []
+    for i in range(len(order)):
+        if all(1000 * np.linalg.norm(cam[i] - cam[j], axis=-1).mean() >= min_mm for j in kept):
+            kept.append(i)
+    return poses[order[kept]]
 
 
 def depth_restarts(pose: np.ndarray, pivot: np.ndarray, share: float = DEPTH_RESTART) -> np.ndarray:
