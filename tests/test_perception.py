@@ -27,7 +27,7 @@ from monose3.perception.fitting import (
     restarted_fit,
 )
 from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_pose, view_around
-from monose3.perception.hypotheses import pnp_hypotheses
+from monose3.perception.hypotheses import pnp_hypotheses, sphere_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.reliability import (
     RELIABLE_DEPTH_PER_PIXEL_MM,
@@ -279,6 +279,20 @@ def test_fit_pose_on_the_bundled_sample(parser, renderers, models, sample):
     assert _add(models["panda"], joints, refined.pose, fit.pose) < 0.005 and len(refined.candidates) == 2
 
 
+@pytest.mark.slow
+def test_a_doubtful_fit_takes_a_second_look_and_keeps_the_better(parser, renderers, models, sample):
+    """Blurred, the sample's outline finds no sharp edges: the fit is doubted, so the dense
+    sphere is fitted too, and the better scoring of the two fits is the result."""
+    image, K = sample
+    blurred = cv2.GaussianBlur(image, (0, 0), 4)
+    joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
+    args = (parser, renderers["panda"], models["panda"], blurred, K, joints)
+    first = fit_pose(*args, second_look=False)
+    assert first.doubts() and "second look" not in first.timings
+    fit = fit_pose(*args)
+    assert "second look" in fit.timings and fit.score >= first.score
+
+
 def test_distinct_poses_keep_the_best_of_each_cluster():
     base = np.array([[0.0, 0, 0], [0, 0, 0.5], [0.3, 0, 0.8]])
     pose = make_pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
@@ -287,6 +301,27 @@ def test_distinct_poses_keep_the_best_of_each_cluster():
     kept = distinct_poses(poses, np.array([0.5, 0.9, 0.7, 0.1]), base, min_mm=3.0)
     np.testing.assert_allclose(kept, poses[[1, 2]])  # 1 mm beats 0 and 2 mm (within 3 mm of it), 10 mm stays
     np.testing.assert_allclose(distinct_poses(poses, np.zeros(4), base, min_mm=0.5), poses)
+
+
+def test_sphere_poses_facing_the_robot_see_it_along_its_ray():
+    """An off-centre mask: both kinds of sphere pose put the robot's centroid on the mask's
+    centroid, and a facing pose sees it from its (azimuth, elevation) along the ray, as the
+    plain pose sees it along the optical axis (the same direction in the robot's frame)."""
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    mask = torch.zeros(240, 320)
+    mask[20:80, 220:300] = 1  # up and right of the centre
+    view = ViewEvidence(mask, np.zeros((0, 2)), np.zeros(0), K, np.array([0.0, 0, 320, 240]))
+    surface = np.random.default_rng(0).uniform([-0.2, -0.2, 0.0], [0.2, 0.2, 1.0], (500, 3))
+    centroid = surface.mean(0)
+    plain = np.stack(sphere_hypotheses(view, surface, 6, (0.0, 40.0)))
+    facing = np.stack(sphere_hypotheses(view, surface, 6, (0.0, 40.0), facing=True))
+    for poses in (plain, facing):
+        np.testing.assert_allclose(project(transform_points(poses, centroid[None])[:, 0], K), [[259.5, 49.5]] * 12,
+                                   atol=1e-6)  # fmt: skip
+    ray = transform_points(facing, centroid[None])[:, 0]
+    seen_along = np.einsum("nji,nj->ni", facing[:, :3, :3], ray / np.linalg.norm(ray, axis=1, keepdims=True))
+    np.testing.assert_allclose(seen_along, plain[:, 2, :3], atol=1e-9)  # the optical axis in the robot's frame
+    assert not np.allclose(facing[:, :3, :3], plain[:, :3, :3])
 
 
 def test_the_restarts_start_either_side_along_the_line_of_sight():

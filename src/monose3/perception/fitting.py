@@ -34,6 +34,11 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
    runs again from the best pose moved :data:`DEPTH_RESTART` of its distance nearer and
    further; each restart finds its own edges, and the better one is the pose. How far apart
    the two end (``Fit.spread_mm``) tells how firmly the image fixes the depth.
+8. **Second look.** When the fit gives a reason to doubt it (:meth:`Fit.doubts`), steps 3-7
+   run again from a denser sphere alone (``hypotheses.DENSE_AZIMUTHS`` x ``DENSE_ELEVATIONS``,
+   each pose facing the robot along its ray; PnP's poses had their turn), and the better
+   scoring of the two fits is the pose: the 16 poses of step 2 are often 20 degrees from a
+   hard robot's orientation, too far for the refinement, and a doubted fit is where that shows.
 
 The restarts start from the refined hypothesis with the best final fit (IoU, keypoint residual,
 the outline's support by the image's edges), and the reported pose is the restart that fits
@@ -56,7 +61,7 @@ from monose3.geometry.poses import transform_points
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.flow_pose import solve_pose
 from monose3.perception.edges import edge_agreement, edge_terms
-from monose3.perception.hypotheses import pnp_hypotheses, sphere_hypotheses
+from monose3.perception.hypotheses import DENSE_AZIMUTHS, DENSE_ELEVATIONS, pnp_hypotheses, sphere_hypotheses
 from monose3.perception.local_search import DEFAULT_SEARCH, SearchConfig, search_locally
 from monose3.perception.parser import RobotParser
 from monose3.perception.reliability import (
@@ -261,11 +266,12 @@ def fit_pose(
     edges: bool = True,
     search: bool = True,
     restart: bool = True,
+    second_look: bool = True,
 ) -> Fit:
     """The module's stages on one image (``[H, W, 3]`` uint8 RGB, its K, the joints).
-    ``sphere`` / ``refine`` / ``search`` / ``restart`` off leave out the sphere's hypotheses /
-    the refinement / its local search / its restarts in depth, ``edges`` off refines on the
-    mask alone (ablations)."""
+    ``sphere`` / ``refine`` / ``search`` / ``restart`` / ``second_look`` off leave out the
+    sphere's hypotheses / the refinement / its local search / its restarts in depth / the second
+    look, ``edges`` off refines on the mask alone (ablations)."""
     clock = _Clock()
     view = parse_image(parser, image, K)
     if view.robot_fraction < MIN_MASK_FRACTION:
@@ -276,15 +282,29 @@ def fit_pose(
     if extra_poses is not None:
         hyps += list(extra_poses)
     surface = robot.surface_points(joints[None])[0]
-    if sphere or not hyps:
-        hyps += sphere_hypotheses(view, surface)
-    if not hyps:
+    stages = dict(joints=joints, view=view, kp_base=kp_base, pivot=robot.centroid(surface), refine=refine,
+                  edges=edges, search=search, restart=restart)  # fmt: skip
+    first = hyps + sphere_hypotheses(view, surface) if sphere or not hyps else hyps
+    if not first:
         return not_found(view)
-    poses = best_hypotheses(renderer, joints, np.stack(hyps), view, kp_base, KEEP_HYPOTHESES)
+    fit = _fit_hypotheses(renderer, np.stack(first), clock=clock, **stages)
+    if second_look and refine and fit.doubts():
+        dense = sphere_hypotheses(view, surface, DENSE_AZIMUTHS, DENSE_ELEVATIONS, facing=True)
+        other = _fit_hypotheses(renderer, np.stack(dense), clock=_Clock(), **stages) if dense else fit
+        fit = other if other.score > fit.score else fit
+        clock.lap("second look")
+    fit.timings = clock.laps
+    return fit
+
+
+def _fit_hypotheses(renderer: RobotRenderer, hyps: np.ndarray, joints: np.ndarray, view: ViewEvidence,
+                    kp_base: np.ndarray, pivot: np.ndarray, refine: bool, edges: bool, search: bool,
+                    restart: bool, clock: _Clock) -> Fit:  # fmt: skip
+    """The module's steps 3-7 from the hypotheses ``hyps`` ``[H, 4, 4]``, timed by ``clock``."""
+    poses = best_hypotheses(renderer, joints, hyps, view, kp_base, KEEP_HYPOTHESES)
     clock.lap("search")
     if refine:
         local = DEFAULT_SEARCH if search else None
-        pivot = robot.centroid(surface)
         poses = refine_coarse_to_fine(renderer, joints, poses, view, kp_base, edges=edges, search=local, pivot=pivot)
         clock.lap("refine")
     if refine and restart:
@@ -293,7 +313,6 @@ def fit_pose(
     else:
         fit = best_fit(renderer, joints, poses, view, kp_base)
         clock.lap("score")
-    fit.timings = clock.laps
     return fit
 
 

@@ -15,6 +15,9 @@ from monose3.perception.views import MASK_THRESHOLD, ViewEvidence
 MIN_KEYPOINT_CONFIDENCE = 0.2
 PNP_ERROR_FRACTION = 0.02  # RANSAC inlier threshold, as a fraction of the view's width
 SPHERE_AZIMUTHS, SPHERE_ELEVATIONS = 8, (10.0, 45.0)  # a fallback: PnP from the keypoints wins when it works
+# The second look's sphere (fitting.fit_pose, step 8): denser, over the elevations a camera sees a
+# robot from (-10 to 60 degrees in the hard scenes), each pose facing the robot along its ray.
+DENSE_AZIMUTHS, DENSE_ELEVATIONS = 16, (-5.0, 15.0, 35.0, 55.0)
 
 
 def pnp_hypotheses(view: ViewEvidence, keypoints_base: np.ndarray) -> list[np.ndarray]:
@@ -64,10 +67,14 @@ def _pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
 
 
-def sphere_hypotheses(view: ViewEvidence, surface_base: np.ndarray) -> list[np.ndarray]:
-    """Orientations over the sphere (the camera looking at the robot from azimuths x elevations),
-    each placed so the robot's centroid projects to the mask's centroid at the depth where its
-    projected extent matches the mask's."""
+def sphere_hypotheses(view: ViewEvidence, surface_base: np.ndarray, azimuths: int = SPHERE_AZIMUTHS,
+                      elevations: tuple[float, ...] = SPHERE_ELEVATIONS,
+                      facing: bool = False) -> list[np.ndarray]:  # fmt: skip
+    """Orientations over the sphere (the camera looking at the robot from ``azimuths`` x
+    ``elevations``), each placed so the robot's centroid projects to the mask's centroid at the
+    depth where its projected extent matches the mask's. With ``facing``, each is turned about
+    the camera so that it sees the robot from that direction along the ray to it (without, it
+    looks along the optical axis, which an off-centre robot is not seen along)."""
     ys, xs = np.nonzero((view.mask > MASK_THRESHOLD).numpy())
     if not len(xs):
         return []
@@ -76,17 +83,28 @@ def sphere_hypotheses(view: ViewEvidence, surface_base: np.ndarray) -> list[np.n
     centroid = surface_base.mean(0)
     f = (view.K[0, 0] + view.K[1, 1]) / 2
     ray = np.array([(centre[0] - view.K[0, 2]) / view.K[0, 0], (centre[1] - view.K[1, 2]) / view.K[1, 1], 1.0])
+    turn = _turn_onto(ray) if facing else np.eye(3)
     poses = []
-    for elevation in SPHERE_ELEVATIONS:
-        for i in range(SPHERE_AZIMUTHS):
-            az, el = 2 * math.pi * i / SPHERE_AZIMUTHS, math.radians(elevation)
+    for elevation in elevations:
+        for i in range(azimuths):
+            az, el = 2 * math.pi * i / azimuths, math.radians(elevation)
             eye = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
             rot = _look_at(eye)
             pts = (surface_base - centroid) @ rot.T
             size = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1]))
             depth = f * size / extent
-            poses.append(make_pose(rot, ray * depth - rot @ centroid))
+            poses.append(make_pose(turn @ rot, ray * depth - turn @ rot @ centroid))
     return poses
+
+
+def _turn_onto(ray: np.ndarray) -> np.ndarray:
+    """The rotation that turns the optical axis (0, 0, 1) onto ``ray`` about their common normal."""
+    direction = ray / np.linalg.norm(ray)
+    axis = np.cross([0.0, 0.0, 1.0], direction)
+    sin = np.linalg.norm(axis)
+    if sin < 1e-9:
+        return np.eye(3)
+    return cv2.Rodrigues(axis / sin * math.atan2(sin, direction[2]))[0]
 
 
 def _look_at(eye: np.ndarray) -> np.ndarray:
