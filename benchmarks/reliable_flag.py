@@ -21,7 +21,8 @@ thresholds) and with the restarts in depth (``fitting.restarted_fit``: their spr
 the edge support went from 0.4 to 0.2) and with the depth per pixel (``reliability.depth_per_pixel_mm``:
 it came in, the spread went from 20 to 40 mm) and with the zoomed view's context masks
 (``views.CONTEXT_SCALES``: the spread back to 20 mm, the depth per pixel from 38 to 32 mm), and
-the check run again each time:
+the check run again each time; the second look (``fitting.fit_pose``, step 8) came with the
+check run again and the thresholds kept:
 
     monose3 generate --out data/calib_hard_tiny --num 80 --seed 3003 --profile hard --renderer tiny
     monose3 generate --out data/calib_reallike_tiny --num 40 --seed 4004 --profile reallike --renderer tiny
