@@ -227,6 +227,32 @@ def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeyp
     assert bare.rgb is None and torch.equal(bare.mask, expected.mask)
 
 
+def test_silhouettes_fall_back_to_halves_on_out_of_memory(models, sample_view, monkeypatch):
+    renderer = RobotRenderer(models["panda"])
+    views = [sample_view(models["panda"], np.random.default_rng(50 + i)) for i in range(5)]
+    args = ([v.joints for v in views], [v.pose for v in views], [v.K for v in views], (96, 72))
+    expected = renderer.silhouettes(*args)
+    real = renderer._silhouettes
+    calls = []
+
+    def tight(q, *rest):
+        calls.append(len(q))
+        if len(q) > 2:
+            raise torch.OutOfMemoryError("simulated")
+        return real(q, *rest)
+
+    monkeypatch.setattr(renderer, "_silhouettes", tight)
+    assert torch.equal(renderer.silhouettes(*args), expected)
+    assert calls == [5, 2, 3, 1, 2]
+
+    def no_memory_at_all(q, *rest):
+        raise torch.OutOfMemoryError("simulated")
+
+    monkeypatch.setattr(renderer, "_silhouettes", no_memory_at_all)
+    with pytest.raises(torch.OutOfMemoryError):  # not even one row fits: the error is the caller's
+        renderer.silhouettes(*args)
+
+
 @pytest.mark.parametrize(
     ("change", "words"),
     [

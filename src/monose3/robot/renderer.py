@@ -10,8 +10,9 @@ only as an independent reference.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -20,6 +21,8 @@ from monose3.errors import Monose3Error
 from monose3.robot.jobs import Lighting, RenderJob
 from monose3.robot.model import RobotModel, RobotSpec
 from monose3.robot.rasterize import Fragments, gather_vertices, rasterize, rasterize_coverage
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -171,34 +174,28 @@ class RobotRenderer:
     def silhouettes(self, joints, camera_from_base, K, size: tuple[int, int]) -> torch.Tensor:
         """The robot's mask ``[B, H, W]`` (bool), as :meth:`render` gives it, without depth or
         colour, for comparing silhouettes (``benchmarks/render.py``: 1.2x the unshaded renders'
-        rate at 128x96, 1.9x at 320x240 on the CPU)."""
+        rate at 128x96, 1.9x at 320x240 on the CPU). Split into halves on a CUDA out-of-memory
+        error, as :meth:`render` is."""
         q, pose, K = self._inputs(joints, camera_from_base, K, size)
+        size = (int(size[0]), int(size[1]))
+        part = lambda sl: self._silhouettes(q[sl], pose[sl], K[sl], size)  # noqa: E731
+        return _in_halves_on_oom(part, 0, len(q), lambda a, b: torch.cat([a, b]))
+
+    def _silhouettes(self, q, pose, K, size) -> torch.Tensor:
         tensors = self._tensors(pose.device)
         verts, _ = self.camera_vertices(self.camera_links(q, pose), normals=False)
-        return rasterize_coverage(verts, tensors["faces"], K, (int(size[0]), int(size[1])), tensors["cullable"])
+        return rasterize_coverage(verts, tensors["faces"], K, size, tensors["cullable"])
 
     def _render_chunked(self, q, pose, K, size, light, color_scale, shade: bool) -> RenderOutput:
-        try:
-            return self._render(q, pose, K, size, light, color_scale, shade)
-        except torch.OutOfMemoryError:
-            if len(q) == 1:
-                raise
-            torch.cuda.empty_cache()
-            half = len(q) // 2
-            parts = [
-                self._render_chunked(
-                    q[sl],
-                    pose[sl],
-                    K[sl],
-                    size,
-                    _slice_light(light, sl),
-                    None if color_scale is None else color_scale[sl],
-                    shade,
-                )
-                for sl in (slice(0, half), slice(half, None))
-            ]
-            rgb = torch.cat([p.rgb for p in parts]) if shade else None
-            return RenderOutput(rgb, torch.cat([p.mask for p in parts]), torch.cat([p.depth for p in parts]))
+        def part(sl: slice) -> RenderOutput:
+            scale = None if color_scale is None else color_scale[sl]
+            return self._render(q[sl], pose[sl], K[sl], size, _slice_light(light, sl), scale, shade)
+
+        def join(a: RenderOutput, b: RenderOutput) -> RenderOutput:
+            rgb = torch.cat([a.rgb, b.rgb]) if shade else None
+            return RenderOutput(rgb, torch.cat([a.mask, b.mask]), torch.cat([a.depth, b.depth]))
+
+        return _in_halves_on_oom(part, 0, len(q), join)
 
     def _render(self, q, pose, K, size, light: LightingBatch, color_scale, shade: bool) -> RenderOutput:
         tensors = self._tensors(pose.device)
@@ -260,3 +257,16 @@ class RobotRenderer:
 
 def _slice_light(light: LightingBatch, sl: slice) -> LightingBatch:
     return LightingBatch(*(getattr(light, f)[sl] for f in LightingBatch.__dataclass_fields__))
+
+
+def _in_halves_on_oom(render: Callable[[slice], T], start: int, stop: int, join: Callable[[T, T], T]) -> T:
+    """``render(slice(start, stop))`` of a batch's rows; on a CUDA out-of-memory error the rows
+    are rendered in halves (recursively, down to one row) and the halves joined."""
+    try:
+        return render(slice(start, stop))
+    except torch.OutOfMemoryError:
+        if stop - start == 1:
+            raise
+        torch.cuda.empty_cache()
+        mid = (start + stop) // 2
+        return join(_in_halves_on_oom(render, start, mid, join), _in_halves_on_oom(render, mid, stop, join))
