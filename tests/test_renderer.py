@@ -186,6 +186,14 @@ def test_unshaded_renders_the_same_silhouette_and_depth(models, renderers, sampl
     shaded, bare = renderers["panda"].render(*args), renderers["panda"].render(*args, shade=False)
     assert bare.rgb is None and bare.mask.any()
     assert torch.equal(shaded.mask, bare.mask) and torch.equal(shaded.depth, bare.depth)
+    renderer = renderers["panda"]
+    tensors = renderer._tensors(torch.device("cpu"))
+    verts, _ = renderer.camera_vertices(renderer.camera_links(view.joints[None], torch.from_numpy(view.pose[None])))
+    K = torch.from_numpy(view.K[None])
+    full = rasterize(verts, tensors["faces"], K, view.size, tensors["cullable"])
+    lean = rasterize(verts, tensors["faces"], K, view.size, tensors["cullable"], barycentrics=False)
+    assert lean.bary is None and full.bary is not None
+    assert torch.equal(full.face, lean.face) and torch.equal(full.depth, lean.depth)
 
 
 @pytest.mark.parametrize("robot", ["panda", "kuka"])

@@ -27,11 +27,11 @@ CHUNK = 4_000_000
 @dataclass
 class Fragments:
     """The nearest triangle at each pixel: ``face`` ``[B, H, W]`` (-1 where empty), its
-    perspective-correct barycentric coordinates ``bary`` ``[B, H, W, 3]`` and ``depth`` (z, 0
-    where empty)."""
+    perspective-correct barycentric coordinates ``bary`` ``[B, H, W, 3]`` (None where not
+    asked for) and ``depth`` (z, 0 where empty)."""
 
     face: torch.Tensor
-    bary: torch.Tensor
+    bary: torch.Tensor | None
     depth: torch.Tensor
 
     @property
@@ -128,17 +128,18 @@ def rasterize(
     K: torch.Tensor,
     size: tuple[int, int],
     cullable: torch.Tensor | None = None,
+    barycentrics: bool = True,
 ) -> Fragments:
     """Rasterise camera-frame vertices ``[B, V, 3]`` (OpenCV axes) of triangles ``faces``
     ``[F, 3]`` with intrinsics ``[B, 3, 3]`` into ``size`` = (W, H) images. Back faces are
     skipped where ``cullable`` ``[F]`` (faces of closed, outward-wound meshes); the rest are
-    drawn from both sides."""
+    drawn from both sides. Without ``barycentrics`` (only shading reads them) ``bary`` is None."""
     width, height = size
     batch, verts, K = verts.shape[0], verts.float(), K.float()
     zbuf = torch.full((batch * height * width,), _EMPTY, dtype=torch.int64, device=verts.device)
     fold = lambda counts, table, ids: _scatter_chunk(zbuf, counts, table, ids, width)  # noqa: E731
     _in_chunks(_candidates(verts, faces, K, size, cullable), fold)
-    return _resolve(zbuf, verts, faces, K, batch, size)
+    return _resolve(zbuf, verts, faces, K, batch, size, barycentrics)
 
 
 def rasterize_coverage(
@@ -177,11 +178,11 @@ def _scatter_chunk(
 ) -> None:
     """Test the candidate pixels of some triangles and fold the covered ones into ``zbuf``."""
     row, tid, w, pixel = _candidate_pixels(counts, table, ids, width)
-    inside = _covers(w)
+    inside = _covers(w).nonzero(as_tuple=True)[0]  # the depth of the covered ones only
+    w, inverse_z, tid, pixel = w[inside], row[inside, 9:12], tid[inside], pixel[inside]
     w = w / w.sum(-1, keepdim=True)
-    depth = 1.0 / (w * row[:, 9:12]).sum(-1)  # perspective-correct z
+    depth = 1.0 / (w * inverse_z).sum(-1)  # perspective-correct z
     key = (depth / DEPTH_UNIT).long().clamp(0, (1 << 22) - 1) << _ID_BITS | tid[:, 1]
-    key = torch.where(inside, key, _EMPTY)
     zbuf.scatter_reduce_(0, pixel, key, reduce="amin")
 
 
@@ -196,7 +197,8 @@ def _cover_chunk(
 def _covers(barycentrics: torch.Tensor) -> torch.Tensor:
     """Whether a triangle covers the pixel of each of its screen ``barycentrics`` ``[N, 3]``
     (a pixel on an edge belongs to both triangles: no cracks between them)."""
-    return (barycentrics >= -1e-5).all(-1)
+    inside = barycentrics >= -1e-5
+    return inside[:, 0] & inside[:, 1] & inside[:, 2]  # several times faster than .all(-1) on the CPU
 
 
 def gather_vertices(values: torch.Tensor, batch_index: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
@@ -207,13 +209,13 @@ def gather_vertices(values: torch.Tensor, batch_index: torch.Tensor, corners: to
     return values.reshape(b * v, c).index_select(0, flat).view(-1, 3, c)
 
 
-def _resolve(zbuf, verts, faces, K, batch, size) -> Fragments:
-    """Winning triangle per pixel, and its perspective-correct barycentrics and depth."""
+def _resolve(zbuf, verts, faces, K, batch, size, barycentrics: bool) -> Fragments:
+    """Winning triangle per pixel, its depth and (with ``barycentrics``) its perspective-correct barycentrics."""
     width, height = size
     covered = zbuf != _EMPTY
     tri_id = torch.where(covered, zbuf & ((1 << _ID_BITS) - 1), torch.zeros_like(zbuf))
     face = torch.where(covered, tri_id % faces.shape[0], torch.full_like(zbuf, -1)).view(batch, height, width)
-    bary = torch.zeros(batch * height * width, 3, device=verts.device)
+    bary = torch.zeros(batch * height * width, 3, device=verts.device) if barycentrics else None
     depth = torch.zeros(batch * height * width, device=verts.device)
     pix = covered.nonzero(as_tuple=True)[0]
     if len(pix):
@@ -224,6 +226,8 @@ def _resolve(zbuf, verts, faces, K, batch, size) -> Fragments:
         w = _barycentrics_at(uv, pixel, _signed_area(uv)).clamp_min(0)
         persp = w / tri[..., 2]
         norm = persp.sum(-1, keepdim=True)
-        bary[pix] = persp / norm
+        if bary is not None:
+            bary[pix] = persp / norm
         depth[pix] = 1.0 / norm[:, 0]
-    return Fragments(face=face, bary=bary.view(batch, height, width, 3), depth=depth.view(batch, height, width))
+    bary = None if bary is None else bary.view(batch, height, width, 3)
+    return Fragments(face=face, bary=bary, depth=depth.view(batch, height, width))

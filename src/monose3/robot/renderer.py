@@ -200,7 +200,7 @@ class RobotRenderer:
     def _render(self, q, pose, K, size, light: LightingBatch, color_scale, shade: bool) -> RenderOutput:
         tensors = self._tensors(pose.device)
         verts, normals = self.camera_vertices(self.camera_links(q, pose), normals=shade)
-        frags = rasterize(verts, tensors["faces"], K, size, tensors["cullable"])
+        frags = rasterize(verts, tensors["faces"], K, size, tensors["cullable"], barycentrics=shade)
         rgb = self._shade(frags, verts, normals, light, color_scale) if shade else None
         return RenderOutput(rgb=rgb, mask=frags.mask, depth=frags.depth)
 
