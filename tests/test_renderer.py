@@ -212,21 +212,31 @@ def test_silhouettes_are_the_renders_masks(models, renderers, sample_view, robot
     assert torch.equal(renderers[robot].silhouettes(*args), masks)
 
 
-def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeypatch):
-    renderer = RobotRenderer(models["panda"])
-    views = [sample_view(models["panda"], np.random.default_rng(40 + i)) for i in range(4)]
-    args = ([v.joints for v in views], [v.pose for v in views], [v.K for v in views], (96, 72))
-    expected = renderer.render(*args)
-    real = renderer._render
-    calls = []
+def _memory_for(renderer: RobotRenderer, method: str, rows: int, monkeypatch) -> list[int]:
+    """Make ``renderer.<method>`` (its per-batch work) raise a CUDA out-of-memory error on
+    batches of more than ``rows`` rows; returns the batch sizes it is then called with, in order."""
+    real, calls = getattr(renderer, method), []
 
     def tight(q, *rest):
         calls.append(len(q))
-        if len(q) > 1:
+        if len(q) > rows:
             raise torch.OutOfMemoryError("simulated")
         return real(q, *rest)
 
-    monkeypatch.setattr(renderer, "_render", tight)
+    monkeypatch.setattr(renderer, method, tight)
+    return calls
+
+
+def _render_args(models, sample_view, seed: int, n: int) -> tuple:
+    views = [sample_view(models["panda"], np.random.default_rng(seed + i)) for i in range(n)]
+    return [v.joints for v in views], [v.pose for v in views], [v.K for v in views], (96, 72)
+
+
+def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeypatch):
+    renderer = RobotRenderer(models["panda"])
+    args = _render_args(models, sample_view, 40, 4)
+    expected = renderer.render(*args)
+    calls = _memory_for(renderer, "_render", 1, monkeypatch)
     got = renderer.render(*args)
     assert calls[0] == 4 and calls.count(1) == 4
     assert torch.equal(got.mask, expected.mask)
@@ -237,26 +247,12 @@ def test_out_of_memory_falls_back_to_smaller_chunks(models, sample_view, monkeyp
 
 def test_silhouettes_fall_back_to_halves_on_out_of_memory(models, sample_view, monkeypatch):
     renderer = RobotRenderer(models["panda"])
-    views = [sample_view(models["panda"], np.random.default_rng(50 + i)) for i in range(5)]
-    args = ([v.joints for v in views], [v.pose for v in views], [v.K for v in views], (96, 72))
+    args = _render_args(models, sample_view, 50, 5)
     expected = renderer.silhouettes(*args)
-    real = renderer._silhouettes
-    calls = []
-
-    def tight(q, *rest):
-        calls.append(len(q))
-        if len(q) > 2:
-            raise torch.OutOfMemoryError("simulated")
-        return real(q, *rest)
-
-    monkeypatch.setattr(renderer, "_silhouettes", tight)
+    calls = _memory_for(renderer, "_silhouettes", 2, monkeypatch)
     assert torch.equal(renderer.silhouettes(*args), expected)
     assert calls == [5, 2, 3, 1, 2]
-
-    def no_memory_at_all(q, *rest):
-        raise torch.OutOfMemoryError("simulated")
-
-    monkeypatch.setattr(renderer, "_silhouettes", no_memory_at_all)
+    _memory_for(renderer, "_silhouettes", 0, monkeypatch)
     with pytest.raises(torch.OutOfMemoryError):  # not even one row fits: the error is the caller's
         renderer.silhouettes(*args)
 
