@@ -29,7 +29,7 @@ from monose3.robot.renderer import RobotRenderer
 # moves it, the variants interleaved frame by frame for their times: 4 + 4 ends at a median
 # 18.4 / 3.1 mm, 4 + 5 at 16.3 / 2.8 mm in 8 % more time, 4 + 6 at 14.8 / 2.4 mm in 18 % more,
 # which brought tracking on the held-out reallike frames to 5.1 images/s, too near the 5 it
-# must keep (README); 4 + 8 and 6 + 6 end nearer still, at 19-27 % more.
+# must keep (README); 4 + 8 and 6 + 6 end nearer still, at 19-27 % more (not interleaved).
 TRACK_ITERATIONS = (4, 5)
 
 
