@@ -183,10 +183,10 @@ def test_unshaded_renders_the_same_silhouette_and_depth(models, renderers, sampl
     """``shade=False`` (the fit's renders) leaves the colours out, and nothing else."""
     view = sample_view(models["panda"], np.random.default_rng(14))
     args = (view.joints[None], view.pose[None], view.K[None], view.size)
-    shaded, bare = renderers["panda"].render(*args), renderers["panda"].render(*args, shade=False)
+    renderer = renderers["panda"]
+    shaded, bare = renderer.render(*args), renderer.render(*args, shade=False)
     assert bare.rgb is None and bare.mask.any()
     assert torch.equal(shaded.mask, bare.mask) and torch.equal(shaded.depth, bare.depth)
-    renderer = renderers["panda"]
     tensors = renderer._tensors(torch.device("cpu"))
     verts, _ = renderer.camera_vertices(renderer.camera_links(view.joints[None], torch.from_numpy(view.pose[None])))
     K = torch.from_numpy(view.K[None])
