@@ -151,7 +151,9 @@ def test_no_holes_or_speckle(models, renderers, sample_view, size):
 
 
 def test_back_face_culling_keeps_every_pixel(models, renderers, sample_view):
-    """Back faces are skipped only on closed meshes, so the silhouette does not change."""
+    """Back faces are skipped only on closed meshes (the shipped meshes' holes capped:
+    ``mesh_repair.py``), so the silhouette does not change. The depth changes only where a cap
+    seen from behind was nearest: the surface behind it shows, as it does without the caps."""
     renderer = renderers["panda"]
     view = sample_view(models["panda"], np.random.default_rng(33), dist=(0.6, 1.2))
     pose = torch.as_tensor(view.pose)[None]
@@ -159,11 +161,13 @@ def test_back_face_culling_keeps_every_pixel(models, renderers, sample_view):
     faces = torch.as_tensor(models["panda"].mesh.faces)
     cullable = torch.as_tensor(models["panda"].mesh.closed_faces())
     K = torch.as_tensor(view.K)[None]
-    assert cullable.float().mean() > 0.2
+    assert cullable.float().mean() > 0.9
     both = rasterize(verts, faces, K, view.size)
     culled = rasterize(verts, faces, K, view.size, cullable)
     assert torch.equal(both.mask, culled.mask)
-    torch.testing.assert_close(both.depth, culled.depth, atol=2e-5, rtol=0)
+    deeper = (culled.depth - both.depth)[both.mask]
+    assert deeper.min() > -2e-5
+    assert (deeper > 2e-5).float().mean() < 1e-3
 
 
 def test_lighting_and_colour_scale_change_colour_not_mask(models, renderers, sample_view):

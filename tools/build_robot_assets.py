@@ -1,6 +1,8 @@
 """Build the robot assets shipped in ``src/monose3/assets/robots/``: each built-in robot's URDF
 and one compact mesh file (``meshes.npz``, a :class:`monose3.robot.meshes.RobotMesh`) made by
-simplifying the URDF's visual meshes once, so that nothing at run time needs pybullet.
+simplifying the URDF's visual meshes once, so that nothing at run time needs pybullet, and
+closing the holes of the simplified meshes where the caps stay hidden
+(:func:`monose3.robot.mesh_repair.capped_mesh`), so that the renderer can skip back faces.
 
 Offline, from a checkout with pybullet and fast-simplification installed:
 
@@ -21,6 +23,7 @@ import fast_simplification
 import numpy as np
 import pybullet_data
 
+from monose3.robot.mesh_repair import capped_mesh
 from monose3.robot.meshes import mesh_from_visuals
 from monose3.robot.model import parse_urdf
 
@@ -67,10 +70,13 @@ def build(name: str, keep: float, min_faces: int) -> None:
         before += len(faces)
         return simplify(verts, faces, colors, keep, min_faces)
 
-    mesh = mesh_from_visuals(visuals, links, src, prepare)
+    mesh, holes = capped_mesh(mesh_from_visuals(visuals, links, src, prepare))
     mesh.save(out / "meshes.npz")
     size = (out / "meshes.npz").stat().st_size / 1e6
     print(f"{name}: {before} -> {len(mesh.faces)} faces, {len(mesh.vertices)} vertices, {size:.2f} MB")
+    for link, what in holes.items():
+        print(f"  {link}: {what}")
+    print(f"  back faces skipped on {mesh.closed_faces().mean():.0%} of the faces")
 
 
 def main() -> None:

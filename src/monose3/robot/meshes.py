@@ -54,20 +54,16 @@ class RobotMesh:
         return self.vertex_link[self.faces[:, 0]]
 
     def closed_faces(self) -> np.ndarray:
-        """``[F]`` bool: the face belongs to a link whose mesh is closed and consistently
-        wound (every edge once in each direction, vertices welded by position), so its back
-        faces are hidden and need not be drawn."""
-        welded = np.unique(np.round(self.vertices * 1e6).astype(np.int64), axis=0, return_inverse=True)[1]
-        faces = welded.reshape(-1)[self.faces]
+        """``[F]`` bool: the face belongs to a link whose mesh is closed and consistently wound
+        (vertices welded by position, every edge used as often in one direction as in the
+        other: :func:`surplus_edges` finds none), so its back faces are hidden and need not be
+        drawn. ``tools/build_robot_assets.py`` closes the shipped meshes' holes (``mesh_repair.py``)."""
+        faces = welded_vertex_ids(self.vertices)[self.faces]
         face_link = self.face_link
         closed = np.zeros(len(faces), bool)
         for link in np.unique(face_link):
             sel = face_link == link
-            f = faces[sel]
-            edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-            key = edges[:, 0] * (len(welded) + 1) + edges[:, 1]
-            rev = edges[:, 1] * (len(welded) + 1) + edges[:, 0]
-            closed[sel] = len(np.unique(key)) == len(key) and np.isin(rev, key).all()
+            closed[sel] = not surplus_edges(faces[sel])
         return closed
 
     def save(self, path: str | Path) -> None:
@@ -257,6 +253,28 @@ def parse_visuals(root: ET.Element, urdf_dir: Path) -> list[Visual]:
                 )
             )
     return visuals
+
+
+def welded_vertex_ids(vertices: np.ndarray) -> np.ndarray:
+    """``[V]`` one id per distinct position of ``vertices`` ``[V, 3]`` (to the micrometre): meshes
+    repeat a vertex where its normal or texture coordinate changes."""
+    return np.unique(np.round(vertices * 1e6).astype(np.int64), axis=0, return_inverse=True)[1].reshape(-1)
+
+
+def surplus_edges(faces: np.ndarray) -> dict[int, list[int]]:
+    """Where the mesh ``faces`` ``[F, 3]`` (welded vertex ids) is open: ``{a: [b, ...]}``, the
+    edge a -> b once for each time the faces use it more often that way than b -> a. Empty for a
+    closed, consistently wound mesh; otherwise the edges form closed loops (each face's edges do)."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    pairs, inverse = np.unique(np.sort(edges, 1), axis=0, return_inverse=True)
+    flow = np.zeros(len(pairs), np.int64)
+    np.add.at(flow, inverse.reshape(-1), np.where(edges[:, 0] < edges[:, 1], 1, -1))
+    out: dict[int, list[int]] = {}
+    for (lo, hi), k in zip(pairs[flow != 0].tolist(), flow[flow != 0].tolist(), strict=True):
+        a, b = (lo, hi) if k > 0 else (hi, lo)
+        out.setdefault(a, []).extend([b] * abs(k))
+    return out
 
 
 def check_visual_files(visuals: list[Visual], urdf_path: Path) -> None:
