@@ -1,8 +1,9 @@
 """Batched triangle rasterisation in plain PyTorch, on whatever device the inputs are on.
 
-For every triangle the pixel centres inside its bounding box are enumerated, tested with
-edge functions, and the nearest surface per pixel is kept with a ``scatter_reduce('amin')``
-z-buffer over (quantised depth, triangle id) keys. OpenCV pixel-centre convention: pixel
+For every row of a triangle's bounding box, the pixel centres between where the row enters
+and leaves the triangle are enumerated, tested with edge functions, and the nearest surface per
+pixel is kept with a ``scatter_reduce('amin')`` z-buffer over (quantised depth, triangle id)
+keys. OpenCV pixel-centre convention: pixel
 (u, v) is covered when the point (u, v) of the image plane, as projected by K, lies inside
 the triangle. No compiled extension, so it runs wherever torch does. Where only the
 silhouette is wanted, :func:`rasterize_coverage` marks the covered pixels and skips the depth.
@@ -22,6 +23,10 @@ _ID_BITS = 40
 _EMPTY = torch.iinfo(torch.int64).max
 # Candidate pixels handled at once: bounds the memory of one pass (about 60 bytes each).
 CHUNK = 4_000_000
+_INSIDE_EPS = 1e-5  # a pixel on an edge belongs to both triangles: no cracks between them
+# Barycentric change per pixel below which an edge is taken as running along the row (its
+# crossing column would carry rounding of more than a pixel).
+_FLAT_SLOPE = 1e-4
 
 
 @dataclass
@@ -161,16 +166,39 @@ def rasterize_coverage(
 
 def _candidate_pixels(counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int):
     """Each candidate pixel of the triangles: its triangle's row of ``table`` and ``ids``, its
-    screen barycentrics, and its flat pixel index."""
-    tri = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
-    offset = torch.arange(len(tri), device=counts.device) - (counts.cumsum(0) - counts)[tri]
+    screen barycentrics, and its flat pixel index. Per row of a triangle's box, only the pixels
+    between where the row enters and leaves the triangle (:func:`_row_spans`) are candidates: a
+    box holds six times as many pixels as its triangle covers in the fit's renders."""
+    device = counts.device
+    box_w = table[:, 12].long()
+    rows = counts // box_w
+    tri = torch.repeat_interleave(torch.arange(len(rows), device=device), rows)  # one per box row
+    dy = torch.arange(len(tri), device=device) - (rows.cumsum(0) - rows)[tri]
+    start, span = _row_spans(table.index_select(0, tri), dy)
+    pair = torch.repeat_interleave(torch.arange(len(span), device=device), span)
+    dx = start[pair] + torch.arange(len(pair), device=device) - (span.cumsum(0) - span)[pair]
+    tri, dy = tri[pair], dy[pair]
     row = table.index_select(0, tri)
-    box_w = row[:, 12].long()
-    dy = offset // box_w
-    dx = offset - dy * box_w
     w = row[:, 0:3] + row[:, 3:6] * dx[:, None] + row[:, 6:9] * dy[:, None]  # screen barycentrics
     tid = ids.index_select(0, tri)
     return row, tid, w, tid[:, 0] + dy * width + dx
+
+
+def _row_spans(rows: torch.Tensor, dy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(first column, number of columns) ``[R]`` of the pixels of each box row (``rows``, the
+    triangles' ``table`` rows; ``dy``, the row in the box) that can be inside the triangle: each
+    barycentric is affine along the row, so each edge bounds the row's columns on one side. A pixel
+    of margin each side covers rounding; the edge test of :func:`_covers` decides."""
+    at_row = rows[:, 0:3] + rows[:, 6:9] * dy[:, None]
+    slope = rows[:, 3:6]
+    crossing = (-_INSIDE_EPS - at_row) / slope  # column where each barycentric reaches the edge
+    flat = slope.abs() < _FLAT_SLOPE  # an edge nearly along the row: bounds nothing here
+    lower = torch.where((slope > 0) & ~flat, crossing, -torch.inf).amax(1)
+    upper = torch.where((slope < 0) & ~flat, crossing, torch.inf).amin(1)
+    last = rows[:, 12] - 1
+    start = (lower.ceil() - 1).clamp(0, None).minimum(last + 1)
+    stop = (upper.floor() + 1).minimum(last)
+    return start.long(), (stop - start + 1).clamp_min(0).long()
 
 
 def _scatter_chunk(
@@ -197,7 +225,7 @@ def _cover_chunk(
 def _covers(barycentrics: torch.Tensor) -> torch.Tensor:
     """Whether a triangle covers the pixel of each of its screen ``barycentrics`` ``[N, 3]``
     (a pixel on an edge belongs to both triangles: no cracks between them)."""
-    inside = barycentrics >= -1e-5
+    inside = barycentrics >= -_INSIDE_EPS
     return inside[:, 0] & inside[:, 1] & inside[:, 2]  # several times faster than .all(-1) on the CPU
 
 
