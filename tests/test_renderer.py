@@ -11,6 +11,7 @@ import torch
 
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel, spec_from_files
+from monose3.robot import rasterize as rasterize_module
 from monose3.robot.rasterize import rasterize
 from monose3.robot.renderer import Lighting, RenderJob, RobotRenderer
 
@@ -326,3 +327,25 @@ def test_robot_files_the_renderer_cannot_use(tmp_path, mesh, words):
     (tmp_path / "arm.dae").write_text("<COLLADA/>")
     with pytest.raises(Monose3Error, match=words):
         RobotModel(_custom_robot(tmp_path, mesh))
+
+
+def test_row_spans_miss_no_pixel_of_a_box(monkeypatch):
+    """Testing only each row's span of a triangle's box finds every pixel testing the whole box
+    does, on slivers, near-horizontal and near-vertical edges and large triangles alike."""
+    rng = np.random.default_rng(5)
+    centre = rng.uniform([0, 0], [160, 120], size=(300, 1, 2))
+    uv = centre + rng.normal(scale=rng.choice([0.5, 4.0, 40.0], size=(300, 1, 1)), size=(300, 3, 2))
+    uv[:100, 2] = uv[:100, 1] + rng.normal(scale=0.05, size=(100, 2))  # slivers
+    uv[100:150, :, 1] = uv[100:150, :1, 1] + rng.normal(scale=[0, 1e-3, 30], size=(50, 3))  # a flat edge
+    z = rng.uniform(1, 3, size=(300, 3, 1))
+    K = torch.tensor([[[100.0, 0, 0], [0, 100.0, 0], [0, 0, 1]]], dtype=torch.float64)
+    verts = torch.as_tensor(np.concatenate([uv / 100 * z, z], -1).reshape(1, -1, 3))
+    faces = torch.arange(900).view(300, 3)
+    renders = {}
+    for small_box in (0, rasterize_module.SMALL_BOX, 10**9):  # rows everywhere, as shipped, boxes everywhere
+        monkeypatch.setattr(rasterize_module, "SMALL_BOX", small_box)
+        renders[small_box] = rasterize(verts, faces, K, (160, 120))
+    reference = renders.pop(10**9)
+    assert reference.mask.sum() > 1000
+    for fragments in renders.values():
+        assert torch.equal(fragments.face, reference.face) and torch.equal(fragments.depth, reference.depth)

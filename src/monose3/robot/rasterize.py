@@ -27,6 +27,7 @@ _INSIDE_EPS = 1e-5  # a pixel on an edge belongs to both triangles: no cracks be
 # Barycentric change per pixel below which an edge is taken as running along the row (its
 # crossing column would carry rounding of more than a pixel).
 _FLAT_SLOPE = 1e-4
+SMALL_BOX = 9  # pixels: boxes this small are tested whole
 
 
 @dataclass
@@ -166,22 +167,36 @@ def rasterize_coverage(
 
 def _candidate_pixels(counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int):
     """Each candidate pixel of the triangles: its triangle's row of ``table`` and ``ids``, its
-    screen barycentrics, and its flat pixel index. Per row of a triangle's box, only the pixels
-    between where the row enters and leaves the triangle (:func:`_row_spans`) are candidates: a
-    box holds six times as many pixels as its triangle covers in the fit's renders."""
+    screen barycentrics, and its flat pixel index. Small boxes are tested whole; in a larger one,
+    per row only the pixels between where the row enters and leaves the triangle
+    (:func:`_row_spans`): a box holds six times as many pixels as its triangle covers in the
+    fit's renders at 320x240, where finding the spans costs more than it saves in a small box."""
+    small = counts <= SMALL_BOX
+    boxed = torch.where(small, counts, 0)
+    tri_small = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), boxed)
+    tri_large, dy_large, dx_large = _spanned_pixels(counts, table, ~small)
+    box_w = table[tri_small, 12].long()
+    offset = torch.arange(len(tri_small), device=counts.device) - (boxed.cumsum(0) - boxed)[tri_small]
+    tri = torch.cat([tri_small, tri_large])
+    dy = torch.cat([offset // box_w, dy_large])
+    dx = torch.cat([offset - dy[: len(tri_small)] * box_w, dx_large])
+    row = table.index_select(0, tri)
+    w = row[:, 0:3] + row[:, 3:6] * dx[:, None] + row[:, 6:9] * dy[:, None]  # screen barycentrics
+    tid = ids.index_select(0, tri)
+    return row, tid, w, tid[:, 0] + dy * width + dx
+
+
+def _spanned_pixels(counts: torch.Tensor, table: torch.Tensor, chosen: torch.Tensor):
+    """(triangle, row, column in its box) ``[N]`` each of the pixels of the ``chosen`` triangles'
+    row spans (:func:`_row_spans`)."""
     device = counts.device
-    box_w = table[:, 12].long()
-    rows = counts // box_w
+    rows = torch.where(chosen, counts // table[:, 12].long(), 0)
     tri = torch.repeat_interleave(torch.arange(len(rows), device=device), rows)  # one per box row
     dy = torch.arange(len(tri), device=device) - (rows.cumsum(0) - rows)[tri]
     start, span = _row_spans(table.index_select(0, tri), dy)
     pair = torch.repeat_interleave(torch.arange(len(span), device=device), span)
     dx = start[pair] + torch.arange(len(pair), device=device) - (span.cumsum(0) - span)[pair]
-    tri, dy = tri[pair], dy[pair]
-    row = table.index_select(0, tri)
-    w = row[:, 0:3] + row[:, 3:6] * dx[:, None] + row[:, 6:9] * dy[:, None]  # screen barycentrics
-    tid = ids.index_select(0, tri)
-    return row, tid, w, tid[:, 0] + dy * width + dx
+    return tri[pair], dy[pair], dx
 
 
 def _row_spans(rows: torch.Tensor, dy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
