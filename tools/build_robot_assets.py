@@ -73,10 +73,11 @@ def build(name: str, keep: float, min_faces: int) -> None:
     mesh, holes = capped_mesh(mesh_from_visuals(visuals, links, src, prepare))
     mesh.save(out / "meshes.npz")
     size = (out / "meshes.npz").stat().st_size / 1e6
-    print(f"{name}: {before} -> {len(mesh.faces)} faces, {len(mesh.vertices)} vertices, {size:.2f} MB")
+    print(f"{name}: {before} -> {len(mesh.faces)} faces (+ {len(mesh.caps)} caps), {len(mesh.vertices)} vertices, "
+          f"{size:.2f} MB")  # fmt: skip
     for link, what in holes.items():
         print(f"  {link}: {what}")
-    print(f"  back faces skipped on {mesh.closed_faces().mean():.0%} of the faces")
+    print(f"  back faces skipped on {mesh.closed_faces().mean():.0%} of the faces drawn")
 
 
 def main() -> None:

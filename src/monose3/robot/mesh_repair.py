@@ -103,8 +103,7 @@ def hole_caps(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     once each way. Vertices are matched by position (:func:`welded_vertex_ids`)."""
     used = np.unique(faces)
     welded = welded_vertex_ids(vertices[used])
-    first = np.full(welded.max() + 1, -1)
-    first[welded[::-1]] = used[::-1]  # one vertex index per position
+    first = used[np.unique(welded, return_index=True)[1]]  # one vertex index per position
     ids = np.full(len(vertices), -1)
     ids[used] = welded
     caps = []
@@ -123,8 +122,8 @@ def caps_hidden(vertices: np.ndarray, faces: np.ndarray, caps: np.ndarray, views
     used = vertices[np.unique(faces)]
     centre = (used.max(0) + used.min(0)) / 2
     radius = np.linalg.norm(used - centre, axis=1).max()
-    distance = 4 * radius
-    focal = CHECK_SIZE / 2 * distance / radius * 0.9
+    distance = 4 * radius  # the link then spans at most 0.26 focal lengths from the image's centre
+    focal = 0.9 * (CHECK_SIZE / 2) / 0.26
     K = torch.tensor([[focal, 0, CHECK_SIZE / 2], [0, focal, CHECK_SIZE / 2], [0, 0, 1]]).expand(views, 3, 3)
     verts = torch.as_tensor(vertices - centre) @ rot.transpose(1, 2) + torch.tensor([0.0, 0.0, distance])
     size = (CHECK_SIZE, CHECK_SIZE)
@@ -134,23 +133,19 @@ def caps_hidden(vertices: np.ndarray, faces: np.ndarray, caps: np.ndarray, views
 
 
 def capped_mesh(mesh: RobotMesh) -> tuple[RobotMesh, dict[str, str]]:
-    """``mesh`` with the holes of each link closed where the caps stay hidden (:func:`hole_caps`,
-    :func:`caps_hidden`; a cap takes its loop's mean face colour), and per open link what was done."""
+    """``mesh`` with the holes of each link closed (its ``caps``) where the caps stay hidden
+    (:func:`hole_caps`, :func:`caps_hidden`), and per open link what was done."""
     face_link = mesh.face_link
-    new_faces, new_colors, report = [mesh.faces], [mesh.face_colors], {}
+    caps, report = [], {}
     for link, name in enumerate(mesh.links):
         faces = mesh.faces[face_link == link]
-        if not len(faces):
+        link_caps = hole_caps(mesh.vertices, faces) if len(faces) else np.zeros((0, 3), np.int64)
+        if not len(link_caps):
             continue
-        caps = hole_caps(mesh.vertices, faces)
-        if not len(caps):
-            continue
-        if not caps_hidden(mesh.vertices, faces, caps):
-            report[name] = f"left open: {len(caps)} cap triangles would show"
-            continue
-        colors = mesh.face_colors[face_link == link]
-        new_faces.append(caps)
-        new_colors.append(np.repeat(colors.mean(0, keepdims=True), len(caps), 0))
-        report[name] = f"closed with {len(caps)} cap triangles"
-    faces = np.concatenate(new_faces)
-    return dataclasses.replace(mesh, faces=faces, face_colors=np.concatenate(new_colors)), report
+        if caps_hidden(mesh.vertices, faces, link_caps):
+            caps.append(link_caps)
+            report[name] = f"closed with {len(link_caps)} cap triangles"
+        else:
+            report[name] = f"left open: {len(link_caps)} cap triangles would show"
+    all_caps = np.concatenate(caps) if caps else np.zeros((0, 3), np.int64)
+    return dataclasses.replace(mesh, caps=all_caps), report

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,8 @@ class RobotMesh:
 
     ``vertices`` ``[V, 3]`` are in the frame of link ``links[vertex_link[i]]`` (metres);
     ``faces`` ``[F, 3]`` index ``vertices``; ``face_colors`` ``[F, 3]`` are RGB in [0, 1].
+    ``caps`` ``[C, 3]`` close the holes of open links (``mesh_repair.py``): drawn, so that back
+    faces can be skipped, but not the robot's surface (no surface points, no normals on them).
     """
 
     links: tuple[str, ...]
@@ -47,19 +49,34 @@ class RobotMesh:
     vertex_link: np.ndarray
     faces: np.ndarray
     face_colors: np.ndarray
+    caps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
 
     @property
     def face_link(self) -> np.ndarray:
         """``[F]`` index into ``links`` of each face."""
         return self.vertex_link[self.faces[:, 0]]
 
+    @property
+    def drawn_faces(self) -> np.ndarray:
+        """``[F + C, 3]``: the faces, then the caps."""
+        return np.concatenate([self.faces, self.caps])
+
+    @property
+    def drawn_colors(self) -> np.ndarray:
+        """``[F + C, 3]``: the faces' colours, then each cap's, its link's mean face colour."""
+        link_colors = np.zeros((len(self.links), 3))
+        np.add.at(link_colors, self.face_link, self.face_colors)
+        link_colors /= np.maximum(np.bincount(self.face_link, minlength=len(self.links)), 1)[:, None]
+        return np.concatenate([self.face_colors, link_colors[self.vertex_link[self.caps[:, 0]]]])
+
     def closed_faces(self) -> np.ndarray:
-        """``[F]`` bool: the face belongs to a link whose mesh is closed and consistently wound
-        (vertices welded by position, every edge used as often in one direction as in the
-        other: :func:`surplus_edges` finds none), so its back faces are hidden and need not be
-        drawn. ``tools/build_robot_assets.py`` closes the shipped meshes' holes (``mesh_repair.py``)."""
-        faces = welded_vertex_ids(self.vertices)[self.faces]
-        face_link = self.face_link
+        """``[F + C]`` bool per drawn face (:attr:`drawn_faces`): it belongs to a link whose mesh
+        (with its caps) is closed and consistently wound (vertices welded by position, every
+        edge used as often in one direction as in the other: :func:`surplus_edges` finds none),
+        so its back faces are hidden and need not be drawn."""
+        drawn = self.drawn_faces
+        faces = welded_vertex_ids(self.vertices)[drawn]
+        face_link = self.vertex_link[drawn[:, 0]]
         closed = np.zeros(len(faces), bool)
         for link in np.unique(face_link):
             sel = face_link == link
@@ -75,6 +92,7 @@ class RobotMesh:
                 vertex_link=self.vertex_link.astype(np.int16),
                 faces=self.faces.astype(np.int32),
                 face_colors=np.round(self.face_colors * 255).astype(np.uint8),
+                caps=self.caps.astype(np.int32),
             )
 
     @staticmethod
@@ -87,6 +105,7 @@ class RobotMesh:
                 vertex_link=data["vertex_link"].astype(np.int64),
                 faces=data["faces"].astype(np.int64),
                 face_colors=data["face_colors"].astype(np.float64) / 255.0,
+                caps=data["caps"].astype(np.int64) if "caps" in data else np.zeros((0, 3), np.int64),
             )
         except (OSError, KeyError, ValueError) as err:
             raise Monose3Error(f"cannot read robot mesh asset {path}: {err}; reinstall monose3") from None
