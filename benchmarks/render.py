@@ -121,7 +121,8 @@ def main() -> int:
         save_comparison(model, renderer, args.picture)
     cores = os.cpu_count() or 1
     print(
-        f"robot {model.name}, {len(model.mesh.faces)} triangles, {cores} cores, torch threads {torch.get_num_threads()}"
+        f"robot {model.name}, {len(model.mesh.faces)} triangles and {len(model.mesh.caps)} in caps, {cores} cores, "
+        f"torch threads {torch.get_num_threads()}"
     )
     print(f"{'size':>8} {'device':>6} {'batch':>5} {'torch/s':>9} {'pybullet/s':>11} {'ratio':>6}")
     for size in SIZES:
