@@ -1,12 +1,12 @@
 """Batched triangle rasterisation in plain PyTorch, on whatever device the inputs are on.
 
-For every row of a triangle's bounding box, the pixel centres between where the row enters
-and leaves the triangle are enumerated, tested with edge functions, and the nearest surface per
-pixel is kept with a ``scatter_reduce('amin')`` z-buffer over (quantised depth, triangle id)
-keys. OpenCV pixel-centre convention: pixel
-(u, v) is covered when the point (u, v) of the image plane, as projected by K, lies inside
-the triangle. No compiled extension, so it runs wherever torch does. Where only the
-silhouette is wanted, :func:`rasterize_coverage` marks the covered pixels and skips the depth.
+For every triangle the pixel centres of its bounding box (of a larger box, of each row the
+span between where the row enters and leaves the triangle) are enumerated, tested with edge
+functions, and the nearest surface per pixel is kept with a ``scatter_reduce('amin')`` z-buffer
+over (quantised depth, triangle id) keys. OpenCV pixel-centre convention: pixel (u, v) is
+covered when the point (u, v) of the image plane, as projected by K, lies inside the
+triangle. No compiled extension, so it runs wherever torch does. Where only the silhouette is
+wanted, :func:`rasterize_coverage` marks the covered pixels and skips the depth.
 """
 
 from __future__ import annotations
@@ -174,12 +174,13 @@ def _candidate_pixels(counts: torch.Tensor, table: torch.Tensor, ids: torch.Tens
     small = counts <= SMALL_BOX
     boxed = torch.where(small, counts, 0)
     tri_small = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), boxed)
-    tri_large, dy_large, dx_large = _spanned_pixels(counts, table, ~small)
-    box_w = table[tri_small, 12].long()
     offset = torch.arange(len(tri_small), device=counts.device) - (boxed.cumsum(0) - boxed)[tri_small]
+    box_w = table[tri_small, 12].long()
+    dy_small = offset // box_w
+    tri_large, dy_large, dx_large = _spanned_pixels(counts, table, ~small)
     tri = torch.cat([tri_small, tri_large])
-    dy = torch.cat([offset // box_w, dy_large])
-    dx = torch.cat([offset - dy[: len(tri_small)] * box_w, dx_large])
+    dy = torch.cat([dy_small, dy_large])
+    dx = torch.cat([offset - dy_small * box_w, dx_large])
     row = table.index_select(0, tri)
     w = row[:, 0:3] + row[:, 3:6] * dx[:, None] + row[:, 6:9] * dy[:, None]  # screen barycentrics
     tid = ids.index_select(0, tri)
