@@ -89,5 +89,5 @@ def test_culling_a_capped_cube_draws_what_the_open_cube_shows():
 def test_the_shipped_meshes_are_closed_but_where_a_cap_would_show(robot):
     mesh = RobotModel(robot).mesh
     closed = mesh.closed_faces()
-    open_links = {mesh.links[i] for i in np.unique(mesh.vertex_link[mesh.drawn_faces[~closed, 0]])}
+    open_links = {mesh.links[i] for i in np.unique(mesh.drawn_face_link[~closed])}
     assert open_links == ({"panda_hand"} if robot == "panda" else set())

@@ -62,6 +62,11 @@ class RobotMesh:
         return np.concatenate([self.faces, self.caps])
 
     @property
+    def drawn_face_link(self) -> np.ndarray:
+        """``[F + C]`` index into ``links`` of each drawn face."""
+        return self.vertex_link[self.drawn_faces[:, 0]]
+
+    @property
     def drawn_colors(self) -> np.ndarray:
         """``[F + C, 3]``: the faces' colours, then each cap's, its link's mean face colour."""
         link_colors = np.zeros((len(self.links), 3))
@@ -74,9 +79,8 @@ class RobotMesh:
         (with its caps) is closed and consistently wound (vertices welded by position, every
         edge used as often in one direction as in the other: :func:`surplus_edges` finds none),
         so its back faces are hidden and need not be drawn."""
-        drawn = self.drawn_faces
-        faces = welded_vertex_ids(self.vertices)[drawn]
-        face_link = self.vertex_link[drawn[:, 0]]
+        faces = welded_vertex_ids(self.vertices)[self.drawn_faces]
+        face_link = self.drawn_face_link
         closed = np.zeros(len(faces), bool)
         for link in np.unique(face_link):
             sel = face_link == link

@@ -102,7 +102,7 @@ class RobotRenderer:
                 "normals": torch.as_tensor(self._normals, dtype=torch.float32, device=device),
                 "faces": torch.as_tensor(m.drawn_faces, dtype=torch.int64, device=device),
                 "colors": torch.as_tensor(m.drawn_colors, dtype=torch.float32, device=device),
-                "face_link": torch.as_tensor(m.vertex_link[m.drawn_faces[:, 0]], dtype=torch.int64, device=device),
+                "face_link": torch.as_tensor(m.drawn_face_link, dtype=torch.int64, device=device),
                 "vertex_link": torch.as_tensor(m.vertex_link, dtype=torch.int64, device=device),
                 "cullable": torch.as_tensor(self._cullable, device=device),
             }
