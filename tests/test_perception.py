@@ -15,7 +15,7 @@ from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
-from monose3.perception.edges import edge_terms, find_edges
+from monose3.perception.edges import edge_terms, find_edges, inner_edge_terms
 from monose3.perception.fitting import (
     Fit,
     best_fit,
@@ -166,6 +166,27 @@ def test_a_flat_image_has_no_edges_to_pull_to():
     _, goals, weights = edge_terms(image, mask, depth, np.eye(4), K, 100.0, np.random.default_rng(0))
     assert weights.sum() > 50  # a contrasted square: its outline is where the image's edges are
     assert np.abs(goals - np.clip(goals, 10, 29)).max() < 0.1  # the centres of its outline pixels
+
+
+def test_inner_edges_pull_by_how_far_the_images_edge_lies_from_the_renders():
+    """A robot half white, half black: the colour boundary inside the silhouette is pulled to
+    where the image shows it (2 px to the right), not to the image's nearest edge."""
+    mask = np.zeros((40, 60), bool)
+    mask[8:32, 10:50] = True
+    depth = np.where(mask, 1.0, 0.0)
+    colors = np.zeros((40, 60, 3), np.float32)
+    colors[mask] = 1.0
+    colors[:, 30:][mask[:, 30:]] = 0.1  # the render's boundary: between pixels 29 and 30
+    K = np.array([[50.0, 0, 30], [0, 50.0, 20], [0, 0, 1]])
+    image = np.full((40, 60, 3), 0.5, np.float32)
+    image[8:32, 10:32], image[8:32, 32:50] = 0.9, 0.2  # the image's: between 31 and 32
+    points, goals, weights = inner_edge_terms(image, colors, depth, mask, np.eye(4), K, 100.0, np.random.default_rng(0))
+    pixels = points[:, :2] / points[:, 2:] * 50 + [30, 20]  # each term's pixel, back-projected and projected again
+    assert len(weights) and np.allclose(weights.sum(), 100 / (1 + (2 / 1.5) ** 2))  # a 2 px pull, Cauchy scale 1.5 px
+    assert np.allclose(goals[:, 0] - pixels[:, 0], 2.0, atol=0.1) and np.allclose(goals[:, 1], pixels[:, 1])
+    assert (np.abs(pixels[:, 0] - 29.5) < 1.5).all()  # the boundary's pixels, not the outline's
+    image[8:32, 10:50] = 0.5  # no edge inside the robot in the image: nothing to pull to
+    assert not inner_edge_terms(image, colors, depth, mask, np.eye(4), K, 100.0, np.random.default_rng(0))[2].any()
 
 
 # ---- the fit ---------------------------------------------------------------------------------------

@@ -201,6 +201,20 @@ def test_unshaded_renders_the_same_silhouette_and_depth(models, renderers, sampl
     assert torch.equal(full.face, lean.face) and torch.equal(full.depth, lean.depth)
 
 
+def test_unlit_colours_are_what_a_light_of_ambient_one_shows(models, renderers, sample_view):
+    """Each pixel's face id picks the mesh's own colour (black where no face): the colours a
+    render lit by ambient light alone shows, with no shading pass."""
+    view = sample_view(models["panda"], np.random.default_rng(15))
+    args = (view.joints[None], view.pose[None], view.K[None], view.size)
+    renderer = renderers["panda"]
+    bare = renderer.render(*args, shade=False)
+    flat = renderer.render(*args, lighting=Lighting(ambient=1.0, diffuse=0.0, specular=0.0))
+    assert torch.equal(bare.face >= 0, bare.mask) and torch.equal(bare.face, flat.face)
+    colors = renderer.unlit_colors(bare.face[0].numpy())
+    assert np.allclose(colors, flat.rgb[0].permute(1, 2, 0).numpy(), atol=1e-6)
+    assert len(np.unique(colors[bare.mask[0].numpy()].round(2), axis=0)) > 3  # white links, black joints, greys
+
+
 @pytest.mark.parametrize("robot", ["panda", "kuka"])
 def test_silhouettes_are_the_renders_masks(models, renderers, sample_view, robot, monkeypatch):
     """The coverage-only path (the fit's silhouette comparisons) gives the mask :meth:`render`

@@ -113,3 +113,52 @@ def edge_agreement(image: np.ndarray, render_mask: np.ndarray, valid: Region | N
         return 0.0, math.inf
     squared = ((goals - rendered.pixels) ** 2).sum(-1)
     return float(weight.mean()), float(np.sqrt((weight * squared).sum() / weight.sum()))
+
+
+INNER_POINTS = 300  # inner edge pixels of the render searched per iteration
+INNER_COLOR_STEP = 0.08  # colour change per pixel (Sobel) of the unlit render that marks an inner edge
+INNER_DEPTH_STEP = 0.02  # depth change per pixel (m) that marks one (a link in front of another)
+INNER_DEPTH_SCALE = 10.0  # depth (m) to colour units when the render's own edges are located
+_BOX_MARGIN = 6  # pixels around the silhouette's box: the searches along the normals stay inside
+
+
+def inner_edges(colors: np.ndarray, depth: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The edges of a render inside its silhouette, at least two pixels from its outline: where
+    its unlit ``colors`` change (a black joint on a white link) and where its ``depth`` steps (a
+    link in front of another). Their pixels ``[N, 2]`` and unit normals ``[N, 2]``."""
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    gray, z = colors.mean(-1).astype(np.float32), depth.astype(np.float32)
+    gx, gy = cv2.Sobel(gray, cv2.CV_32F, 1, 0) / 8, cv2.Sobel(gray, cv2.CV_32F, 0, 1) / 8
+    zx, zy = cv2.Sobel(z, cv2.CV_32F, 1, 0) / 8, cv2.Sobel(z, cv2.CV_32F, 0, 1) / 8
+    colour = np.hypot(gx, gy) > INNER_COLOR_STEP
+    ys, xs = np.nonzero(inner & (colour | (np.hypot(zx, zy) > INNER_DEPTH_STEP)))
+    by_colour = colour[ys, xs]
+    normal = np.stack([np.where(by_colour, gx[ys, xs], zx[ys, xs]), np.where(by_colour, gy[ys, xs], zy[ys, xs])], -1)
+    return np.stack([xs, ys], -1).astype(np.float64), normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+
+
+def inner_edge_terms(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, mask: np.ndarray,
+                     pose: np.ndarray, K: np.ndarray, weight: float, rng: np.random.Generator,
+                     valid: Region | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Residual terms, as :func:`edge_terms` gives them, for the render's edges inside its
+    silhouette (:func:`inner_edges`, of the unlit ``colors`` ``[h, w, 3]``): each is pulled by
+    how far, along its normal, the image's edge lies from the render's own."""
+    ys, xs = np.nonzero(mask)
+    x0, y0, x1, y1 = valid or (0, 0, mask.shape[1], mask.shape[0])
+    lo = np.maximum([xs.min() - _BOX_MARGIN, ys.min() - _BOX_MARGIN], [x0, y0]) if len(xs) else np.array([x0, y0])
+    hi = np.minimum([xs.max() + _BOX_MARGIN + 1, ys.max() + _BOX_MARGIN + 1], [x1, y1]) if len(xs) else lo
+    box = np.s_[lo[1] : hi[1], lo[0] : hi[0]]
+    pixels, normals = inner_edges(colors[box], depth[box], mask[box])
+    if not len(pixels):
+        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
+    pick = rng.choice(len(pixels), min(INNER_POINTS, len(pixels)), replace=False)
+    pixels, normals = pixels[pick], normals[pick]
+    own = np.concatenate([colors[box], INNER_DEPTH_SCALE * depth[box][..., None]], -1).astype(np.float32)
+    at_render, own_strength = find_edges(own, pixels, normals)
+    pixels = pixels + lo
+    at_image, strength = find_edges(image, pixels, normals, valid)
+    offset = at_image - at_render
+    has_edge = (strength >= WEAK_EDGE) & (own_strength >= WEAK_EDGE)
+    pull = has_edge * np.minimum(strength / STRONG_EDGE, 1.0) / (1 + (offset / EDGE_SCALE) ** 2)
+    goals = pixels + offset[:, None] * normals
+    return outline_surface_points(pixels, depth, pose, K), goals, weight * pull / len(pixels)

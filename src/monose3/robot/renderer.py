@@ -57,6 +57,7 @@ class RenderOutput:
     rgb: torch.Tensor | None  # [B, 3, H, W] float in [0, 1], black background (None: not shaded)
     mask: torch.Tensor  # [B, H, W] bool
     depth: torch.Tensor  # [B, H, W] metres along z, 0 where empty
+    face: torch.Tensor  # [B, H, W] the drawn face seen at each pixel (RobotMesh.drawn_faces), -1 where empty
 
 
 def _vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -88,6 +89,8 @@ class RobotRenderer:
         self._mesh = mesh
         self._normals = _vertex_normals(mesh.vertices, mesh.faces)
         self._cullable = mesh.closed_faces()
+        # each drawn face's colour, then black: indexed by a render's face ids, -1 picks black
+        self._palette = np.concatenate([mesh.drawn_colors, np.zeros((1, 3))]).astype(np.float32)
         self._cache: dict[torch.device, dict[str, torch.Tensor]] = {}
 
     def release(self) -> None:
@@ -192,8 +195,8 @@ class RobotRenderer:
             return self._render(q[sl], pose[sl], K[sl], size, _slice_light(light, sl), scale, shade)
 
         def join(a: RenderOutput, b: RenderOutput) -> RenderOutput:
-            rgb = torch.cat([a.rgb, b.rgb]) if shade else None
-            return RenderOutput(rgb, torch.cat([a.mask, b.mask]), torch.cat([a.depth, b.depth]))
+            both = {k: torch.cat([getattr(a, k), getattr(b, k)]) for k in ("mask", "depth", "face")}
+            return RenderOutput(torch.cat([a.rgb, b.rgb]) if shade else None, **both)
 
         return _in_halves_on_oom(part, 0, len(q), join)
 
@@ -202,7 +205,7 @@ class RobotRenderer:
         verts, normals = self.camera_vertices(self.camera_links(q, pose), normals=shade)
         frags = rasterize(verts, tensors["faces"], K, size, tensors["cullable"], barycentrics=shade)
         rgb = self._shade(frags, verts, normals, light, color_scale) if shade else None
-        return RenderOutput(rgb=rgb, mask=frags.mask, depth=frags.depth)
+        return RenderOutput(rgb=rgb, mask=frags.mask, depth=frags.depth, face=frags.face)
 
     def _shade(self, frags: Fragments, verts, normals, light: LightingBatch, color_scale) -> torch.Tensor:
         """Blinn-Phong with interpolated vertex normals, two-sided; black background."""
@@ -232,6 +235,11 @@ class RobotRenderer:
         color = (base * shade + light.specular[bi, None] * spec[:, None]) * light.color[bi]
         rgb[bi, pi] = color.clamp(0, 1)
         return rgb.view(b, h, w, 3).permute(0, 3, 1, 2)
+
+    def unlit_colors(self, face: np.ndarray) -> np.ndarray:
+        """``[..., 3]`` the mesh's own colour of each drawn ``face`` index (:attr:`RenderOutput.face`;
+        black where -1): the robot as a render without light would show it."""
+        return self._palette[face]
 
     def render_jobs(self, jobs: Sequence[RenderJob]) -> list[tuple[np.ndarray, np.ndarray]]:
         """Numpy convenience for per-image callers (overlays, files): ``(rgb [H, W, 3] uint8, mask [H, W])``
