@@ -3,9 +3,10 @@
 Rows (one per stage, each adding to the one above): the paper's reverse diffusion alone
 (RevDiff, 5 DDIM + 5 direct steps); the robot parser with PnP (hypotheses scored by silhouette
 IoU, no sphere search, no refinement); + the coarse search over the sphere; + the silhouette
-and keypoint refinement on the mask alone; + the image's edges in its fine pass; + the local
-search on the silhouette's score between the passes; + the restarts in depth from the best
-refined pose; + the second look from a denser sphere when the fit is doubted (the default).
+and keypoint refinement on the mask alone; + the image's edges in its fine pass (for the
+outline and for the robot's inner edges); + the local search on the silhouette's score
+between the passes; + the restarts in depth from the best refined pose; + the second look
+from a denser sphere when the fit is doubted (the default).
 Per row and set: AUC of ADD (0-100 mm), median ADD, CPU seconds per image (with the stages'
 split for the default). Then:
 
