@@ -185,6 +185,10 @@ def test_inner_edges_pull_by_how_far_the_images_edge_lies_from_the_renders():
     assert len(weights) and np.allclose(weights.sum(), 100 / (1 + (2 / 1.5) ** 2))  # a 2 px pull, Cauchy scale 1.5 px
     assert np.allclose(goals[:, 0] - pixels[:, 0], 2.0, atol=0.1) and np.allclose(goals[:, 1], pixels[:, 1])
     assert (np.abs(pixels[:, 0] - 29.5) < 1.5).all()  # the boundary's pixels, not the outline's
+    off_view = inner_edge_terms(
+        image, colors, depth, mask, np.eye(4), K, 100.0, np.random.default_rng(0), (52, 0, 60, 40)
+    )
+    assert not len(off_view[2])  # the robot outside the image's part of the view: no terms, no error
     image[8:32, 10:50] = 0.5  # no edge inside the robot in the image: nothing to pull to
     assert not inner_edge_terms(image, colors, depth, mask, np.eye(4), K, 100.0, np.random.default_rng(0))[2].any()
 

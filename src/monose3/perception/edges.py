@@ -143,14 +143,19 @@ def inner_edge_terms(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, m
     """Residual terms, as :func:`edge_terms` gives them, for the render's edges inside its
     silhouette (:func:`inner_edges`, of the unlit ``colors`` ``[h, w, 3]``): each is pulled by
     how far, along its normal, the image's edge lies from the render's own."""
+    none = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return none
     x0, y0, x1, y1 = valid or (0, 0, mask.shape[1], mask.shape[0])
-    lo = np.maximum([xs.min() - _BOX_MARGIN, ys.min() - _BOX_MARGIN], [x0, y0]) if len(xs) else np.array([x0, y0])
-    hi = np.minimum([xs.max() + _BOX_MARGIN + 1, ys.max() + _BOX_MARGIN + 1], [x1, y1]) if len(xs) else lo
+    lo = np.maximum([xs.min() - _BOX_MARGIN, ys.min() - _BOX_MARGIN], [x0, y0])
+    hi = np.minimum([xs.max() + _BOX_MARGIN + 1, ys.max() + _BOX_MARGIN + 1], [x1, y1])
+    if (hi - lo < 5).any():  # (next to) nothing of the render inside the image
+        return none
     box = np.s_[lo[1] : hi[1], lo[0] : hi[0]]
     pixels, normals = inner_edges(colors[box], depth[box], mask[box])
     if not len(pixels):
-        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
+        return none
     pick = rng.choice(len(pixels), min(INNER_POINTS, len(pixels)), replace=False)
     pixels, normals = pixels[pick], normals[pick]
     own = np.concatenate([colors[box], INNER_DEPTH_SCALE * depth[box][..., None]], -1).astype(np.float32)

@@ -172,8 +172,8 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
                  keypoints_base: np.ndarray, iterations: int = REFINE_ITERATIONS,
                  edges: bool = False, inner_edges: bool = False) -> np.ndarray:  # fmt: skip
     """Silhouette + keypoint refinement of ``poses`` ``[H, 4, 4]`` (see the module's step 4), and
-    with ``edges`` the image's edges too (step 6; a view without pixels has none), with
-    ``inner_edges`` those of the robot's inner edges as well."""
+    with ``edges`` the image's edges too (step 6; a view without pixels has none), for the
+    outline and, with ``inner_edges``, for the robot's inner edges."""
     edges = edges and view.image is not None
     inner_edges = inner_edges and edges
     mask_share = MASK_SHARE_WITH_EDGES if edges else 1.0
@@ -217,7 +217,8 @@ def refine_coarse_to_fine(renderer: RobotRenderer, joints: np.ndarray, poses: np
                           pivot: np.ndarray | None = None, inner_edges: bool = True) -> np.ndarray:  # fmt: skip
     """:func:`refine_poses` on the mask at :data:`SCORE_SIZE` first (``coarse`` iterations:
     renders 4x cheaper, and ICP on silhouettes needs many small steps from afar), then ``fine``
-    at the view's resolution, with the image's ``edges`` (and ``inner_edges``). With ``search``, the local search
+    at the view's resolution, with the image's ``edges`` (for the outline, and with
+    ``inner_edges`` for the robot's inner edges). With ``search``, the local search
     (module step 5) from each start and each coarse result goes between them, turning trial
     poses about ``pivot`` (the robot's centre in the base frame); all refined poses ``[H or 3H,
     4, 4]`` come back, for :func:`best_fit`."""
@@ -257,8 +258,8 @@ def restarted_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray
     either side in depth (:func:`depth_restarts`) and refined again at the view's resolution;
     the better restart is the fit, and ``spread_mm`` is how far apart the two end."""
     best = best_fit(renderer, joints, poses, view, keypoints_base).pose
-    ends = refine_poses(renderer, joints, depth_restarts(best, pivot), view, keypoints_base, REFINE_ITERATIONS, edges,
-                        edges)  # fmt: skip
+    starts = depth_restarts(best, pivot)
+    ends = refine_poses(renderer, joints, starts, view, keypoints_base, edges=edges, inner_edges=edges)
     return best_fit(renderer, joints, ends, view, keypoints_base)
 
 
