@@ -11,17 +11,23 @@ flag there). ``--check`` measures the flag as shipped, with 95 % (Wilson) interv
 that had no part in choosing it (no search there, so nothing is tuned on them): the 60 frames
 of ``accuracy.py``'s sets leave the false alarms uncertain by about +-10 points.
 
-The thresholds shipped were chosen on 820 frames (seeds 3003-8008). Until the fifteenth
-session the target was 91 % recall, a margin over the goal's 90 % (a rule chosen at exactly 90 %
-falls below it on new frames about half the time), and 400 frames generated after the choice
-(seeds 9009, 10010) checked it; that history is in docs/PIPELINE.md (stage 8). When the robot's
-inner edges came into the fit (fifteenth session), the rule chosen at 91 % (IoU 0.3, 0.9 px,
-support 0.2, spread 30 mm, depth per pixel 38 mm: 91.1 % recall, 2.8 % false alarms on the 820)
-caught only 51 of the 59 bad estimates of seed 9009's check frames. The target became 94 %,
-the goal plus 1.5 standard errors of a recall measured on the 820's 112 bad estimates: IoU 0.3,
-0.85 px, support 0.3, spread 25 mm, depth per pixel 38 mm (94.6 % and 5.2 % there). As that
-target was picked after seed 9009's frames had been seen, 400 new frames check it (seeds 11011
-and 12012):
+The thresholds shipped were chosen on 820 frames (seeds 3003-8008) for at least 91 % recall, a
+margin over the goal's 90 %: a rule chosen at exactly 90 % falls below it on new frames about
+half the time. The frames of seeds 7007 and 8008 were a ``--check`` set first, which showed the
+thresholds chosen on the first 420 frames (IoU 0.6) giving 12.6 % false alarms on hard ones;
+they then joined the choice, and 400 frames generated after it (9009, 10010) check it. The
+choice was made again with the mirrored views' masks (``views.parse_view``; the same
+thresholds) and with the restarts in depth (``fitting.restarted_fit``: their spread came in,
+the edge support went from 0.4 to 0.2) and with the depth per pixel (``reliability.depth_per_pixel_mm``:
+it came in, the spread went from 20 to 40 mm) and with the zoomed view's context masks
+(``views.CONTEXT_SCALES``: the spread back to 20 mm, the depth per pixel from 38 to 32 mm), and
+the check run again each time; the second look (``fitting.fit_pose``, step 8) came with the
+check run again and the thresholds kept, and the choice, run again with it (the 820 frames'
+features as ``frame_features`` gives them, one thread), kept them too: the shipped rule flags
+88.4 % of the 129 bad estimates there with 7.1 % false alarms, the search's best rule at 91 %
+(IoU 0.3, 0.8 px, support 0, spread 15 mm, depth per pixel 36 mm: 91.5 %, 8.4 %) catches no
+more of the check's 63 bad hard estimates (58) with more false alarms (33 of 237 against 31,
+and 1 of 100 reallike against none):
 
     monose3 generate --out data/calib_hard_tiny --num 80 --seed 3003 --profile hard --renderer tiny
     monose3 generate --out data/calib_reallike_tiny --num 40 --seed 4004 --profile reallike --renderer tiny
@@ -29,10 +35,10 @@ and 12012):
     monose3 generate --out data/calib2_reallike_tiny --num 100 --seed 6006 --profile reallike --renderer tiny
     monose3 generate --out data/calib3_hard_tiny --num 300 --seed 7007 --profile hard --renderer tiny
     monose3 generate --out data/calib3_reallike_tiny --num 100 --seed 8008 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --data data/calib*_tiny --recall 0.94 --threads 1
-    monose3 generate --out data/check2_hard_tiny --num 300 --seed 11011 --profile hard --renderer tiny
-    monose3 generate --out data/check2_reallike_tiny --num 100 --seed 12012 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --check data/check2_hard_tiny data/check2_reallike_tiny --threads 1 \\
+    python benchmarks/reliable_flag.py --data data/calib*_tiny --recall 0.91 --threads 1
+    monose3 generate --out data/check_hard_tiny --num 300 --seed 9009 --profile hard --renderer tiny
+    monose3 generate --out data/check_reallike_tiny --num 100 --seed 10010 --profile reallike --renderer tiny
+    python benchmarks/reliable_flag.py --check data/check_hard_tiny data/check_reallike_tiny --threads 1 \\
         --json docs/results/reliable_flag.json
 """
 
@@ -61,10 +67,10 @@ SUPPORTS = (0.0, 0.2, 0.3, 0.4, 0.45, 0.5)
 SPREADS_MM = (10.0, 15.0, 20.0, 25.0, 30.0, 40.0, 60.0, np.inf)
 DEPTHS_PER_PIXEL_MM = (*np.arange(20.0, 60.1, 2.0), np.inf)
 SHIPPED = (
-    reliability.RELIABLE.iou,
-    reliability.RELIABLE.edge_distance_px,
-    reliability.RELIABLE.edge_support,
-    reliability.RELIABLE.spread_mm,
+    reliability.RELIABLE_IOU,
+    reliability.RELIABLE_EDGE_DISTANCE_PX,
+    reliability.RELIABLE_EDGE_SUPPORT,
+    reliability.RELIABLE_SPREAD_MM,
     reliability.RELIABLE_DEPTH_PER_PIXEL_MM,
 )
 
@@ -168,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", nargs="+", default=[], help="frame folders to choose the thresholds on (not held-out)")
     p.add_argument("--check", nargs="+", default=[], help="frame folders never used to choose: measure the flag")
     p.add_argument("--bad-mm", type=float, default=30.0)
-    p.add_argument("--recall", type=float, default=0.94, help="target share of bad estimates flagged")
+    p.add_argument("--recall", type=float, default=0.9, help="target share of bad estimates flagged")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", help="write --check's figures and each frame's features here")
 

@@ -67,7 +67,12 @@ from monose3.perception.edges import edge_agreement, edge_terms, inner_edge_term
 from monose3.perception.hypotheses import DENSE_AZIMUTHS, DENSE_ELEVATIONS, pnp_hypotheses, sphere_hypotheses
 from monose3.perception.local_search import DEFAULT_SEARCH, SearchConfig, search_locally
 from monose3.perception.parser import RobotParser
-from monose3.perception.reliability import RELIABLE, SECOND_LOOK, FitLimits
+from monose3.perception.reliability import (
+    RELIABLE_EDGE_DISTANCE_PX,
+    RELIABLE_EDGE_SUPPORT,
+    RELIABLE_IOU,
+    RELIABLE_SPREAD_MM,
+)
 from monose3.perception.silhouette import (
     OUTLINE_SCALE,
     Outline,
@@ -126,24 +131,23 @@ class Fit:
     found: bool = True
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
 
-    def doubts(self, limits: FitLimits = RELIABLE) -> list[str]:
-        """Why the fit is not to be trusted, in words (empty: it is reliable, as far as the fit can
-        tell), past ``limits``: the ``reliable`` flag's by default."""
+    def doubts(self) -> list[str]:
+        """Why the fit is not to be trusted, in words (empty: it is reliable, as far as the fit can tell)."""
         if not self.found:
             return ["the robot was not found"]
         reasons = []
-        if self.iou < limits.iou:
-            reasons.append(f"silhouette IoU {self.iou:.2f} < {limits.iou:g}")
+        if self.iou < RELIABLE_IOU:
+            reasons.append(f"silhouette IoU {self.iou:.2f} < {RELIABLE_IOU}")
         if math.isinf(self.edge_distance_px):
             return [*reasons, "no image edge along the outline"]
-        if self.edge_distance_px > limits.edge_distance_px:
+        if self.edge_distance_px > RELIABLE_EDGE_DISTANCE_PX:
             off = self.edge_distance_px
-            reasons.append(f"outline {off:.2f} px off the image's edges > {limits.edge_distance_px:g}")
-        if self.edge_support < limits.edge_support:
+            reasons.append(f"outline {off:.2f} px off the image's edges > {RELIABLE_EDGE_DISTANCE_PX}")
+        if self.edge_support < RELIABLE_EDGE_SUPPORT:
             share = 100 * self.edge_support
-            reasons.append(f"{share:.0f} % of the outline on the image's edges < {100 * limits.edge_support:.0f} %")
-        if self.spread_mm > limits.spread_mm:
-            reasons.append(f"restarts in depth ended {self.spread_mm:.0f} mm apart > {limits.spread_mm:g} mm")
+            reasons.append(f"{share:.0f} % of the outline on the image's edges < {100 * RELIABLE_EDGE_SUPPORT:.0f} %")
+        if self.spread_mm > RELIABLE_SPREAD_MM:
+            reasons.append(f"restarts in depth ended {self.spread_mm:.0f} mm apart > {RELIABLE_SPREAD_MM:g} mm")
         return reasons
 
 
@@ -300,7 +304,7 @@ def fit_pose(
     if not first:
         return not_found(view)
     fit = _fit_hypotheses(renderer, np.stack(first), clock=clock, **stages)
-    if second_look and refine and fit.doubts(SECOND_LOOK):
+    if second_look and refine and fit.doubts():
         dense = sphere_hypotheses(view, surface, DENSE_AZIMUTHS, DENSE_ELEVATIONS, facing=True)
         other = _fit_hypotheses(renderer, np.stack(dense), clock=_Clock(), **stages) if dense else fit
         fit = other if other.score > fit.score else fit
