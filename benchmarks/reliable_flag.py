@@ -38,7 +38,7 @@ as that target was picked after seeing them, 400 more frames were generated (see
 12012, hard and reallike), where it caught 48 of 55 (87.3 %) with 11.8 % false alarms on hard.
 The thresholds were kept, recall before false alarms: they catch 57 of seed 9009's 59 (14.5 %
 false alarms) and 50 of seed 11011's 55 (13.9 %). (These fits were made as ``frame_features``
-makes them, one thread, by a script over chunks of 50 frames; ``--check`` was not run itself.):
+makes them, one thread, by a script over chunks of 50 frames; ``--check`` was not run itself.) The commands:
 
     monose3 generate --out data/calib_hard_tiny --num 80 --seed 3003 --profile hard --renderer tiny
     monose3 generate --out data/calib_reallike_tiny --num 40 --seed 4004 --profile reallike --renderer tiny
