@@ -68,6 +68,14 @@ def find_edges(image: np.ndarray, pixels: np.ndarray, normals: np.ndarray,
     return steps[peak] + SEARCH_STEP * (0.5 + vertex), mid
 
 
+def _pull_weight(offset: np.ndarray, strength: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """How much a pull of ``offset`` pixels to an image edge of ``strength`` counts, in [0, 1]:
+    the strength capped at :data:`STRONG_EDGE`, times a Cauchy of the distance; 0 where there
+    is no weak edge or nothing was ``found``."""
+    found = found & (strength >= WEAK_EDGE)
+    return found * np.minimum(strength / STRONG_EDGE, 1.0) / (1 + (offset / EDGE_SCALE) ** 2)
+
+
 def _edge_pulls(image: np.ndarray, render_mask: np.ndarray, pixels: np.ndarray,
                 valid: Region | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """For each of the render's outline ``pixels``: the pixel its silhouette edge should move to
@@ -78,9 +86,7 @@ def _edge_pulls(image: np.ndarray, render_mask: np.ndarray, pixels: np.ndarray,
     # An outline pixel lies inside the silhouette, whose edge is half a pixel further out: that
     # edge, not the pixel's centre, goes to the image's edge.
     offset = offset - 0.5
-    has_edge = (strength >= WEAK_EDGE) & normals.any(-1)
-    weight = has_edge * np.minimum(strength / STRONG_EDGE, 1.0) / (1 + (offset / EDGE_SCALE) ** 2)
-    return pixels + offset[:, None] * normals, weight
+    return pixels + offset[:, None] * normals, _pull_weight(offset, strength, normals.any(-1))
 
 
 def edge_terms(image: np.ndarray, render_mask: np.ndarray, depth: np.ndarray, pose: np.ndarray, K: np.ndarray,
@@ -142,7 +148,8 @@ def inner_edge_terms(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, m
                      valid: Region | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Residual terms, as :func:`edge_terms` gives them, for the render's edges inside its
     silhouette (:func:`inner_edges`, of the unlit ``colors`` ``[h, w, 3]``): each is pulled by
-    how far, along its normal, the image's edge lies from the render's own."""
+    how far, along its normal, the image's edge lies from the render's own (weighted by
+    :func:`_pull_weight`, where the render shows an edge too)."""
     none = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     ys, xs = np.nonzero(mask)
     if not len(xs):
@@ -163,7 +170,6 @@ def inner_edge_terms(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, m
     pixels = pixels + lo
     at_image, strength = find_edges(image, pixels, normals, valid)
     offset = at_image - at_render
-    has_edge = (strength >= WEAK_EDGE) & (own_strength >= WEAK_EDGE)
-    pull = has_edge * np.minimum(strength / STRONG_EDGE, 1.0) / (1 + (offset / EDGE_SCALE) ** 2)
+    pull = _pull_weight(offset, strength, own_strength >= WEAK_EDGE)
     goals = pixels + offset[:, None] * normals
     return outline_surface_points(pixels, depth, pose, K), goals, weight * pull / len(pixels)
