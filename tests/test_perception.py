@@ -15,7 +15,7 @@ from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import axis_angle_to_matrix
 from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
-from monose3.perception.edges import edge_terms, find_edges, inner_edge_terms
+from monose3.perception.edges import edge_terms, find_edges, inner_edge_support, inner_edge_terms
 from monose3.perception.fitting import (
     Fit,
     best_fit,
@@ -191,6 +191,22 @@ def test_inner_edges_pull_by_how_far_the_images_edge_lies_from_the_renders():
     assert not len(off_view[2])  # the robot outside the image's part of the view: no terms, no error
     image[8:32, 10:50] = 0.5  # no edge inside the robot in the image: nothing to pull to
     assert not inner_edge_terms(image, colors, depth, mask, np.eye(4), K, 100.0, np.random.default_rng(0))[2].any()
+
+
+def test_inner_edge_support_is_one_where_the_image_shows_the_renders_inner_edges_and_less_off_them():
+    mask = np.zeros((40, 60), bool)
+    mask[8:32, 10:50] = True
+    depth = np.where(mask, 1.0, 0.0)
+    colors = np.where(mask[..., None], 1.0, 0.0).astype(np.float32)
+    colors[:, 30:][mask[:, 30:]] = 0.1  # the render's inner edge: between pixels 29 and 30
+    image = np.full((40, 60, 3), 0.5, np.float32)
+    image[8:32, 10:30], image[8:32, 30:50] = 0.9, 0.2  # the image's, where the render's is
+    assert inner_edge_support(image, colors, depth, mask) == pytest.approx(1.0)
+    image[8:32, 30:32] = 0.9  # 2 px off: a Cauchy weight of scale 1.5 px
+    assert inner_edge_support(image, colors, depth, mask) == pytest.approx(1 / (1 + (2 / 1.5) ** 2), abs=0.02)
+    image[8:32, 10:50] = 0.5
+    assert inner_edge_support(image, colors, depth, mask) == 0.0
+    assert inner_edge_support(image, colors, depth, np.zeros_like(mask)) == 0.0  # nothing rendered
 
 
 # ---- the fit ---------------------------------------------------------------------------------------

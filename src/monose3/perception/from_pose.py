@@ -66,14 +66,15 @@ def track_pose(
     The view's mask is not mirror-averaged: on the held-out frames tracking was no more accurate
     with it, and 10 % slower (benchmarks/accuracy.py). Nor does it pull the robot's inner edges
     (``fitting.INNER_EDGE_WEIGHT``): from 2 cm / 3 deg off, in 4 + 5 iterations, they ended
-    further (held-out median 3.6 -> 3.8 mm reallike, 19.0 -> 21.0 mm hard) at 10 % more time."""
+    further (held-out median 3.6 -> 3.8 mm reallike, 19.0 -> 21.0 mm hard) at 10 % more time;
+    nor does it score them (``best_fit``'s ``inner_edges``): its one refined pose needs no choice."""
     view = view_around(parser, robot, image, K, joints, previous, mirror=False)
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
     kp_base = robot.keypoints(joints[None])[0]
     start = best_hypotheses(renderer, joints, np.stack([previous, *pnp_hypotheses(view, kp_base)]), view, kp_base, 1)
     poses = refine_coarse_to_fine(renderer, joints, start, view, kp_base, *iterations, inner_edges=False)
-    return best_fit(renderer, joints, poses, view, kp_base)
+    return best_fit(renderer, joints, poses, view, kp_base, inner_edges=False)
 
 
 def refine_from(parser: RobotParser, renderer: RobotRenderer, robot: RobotModel, image: np.ndarray,
