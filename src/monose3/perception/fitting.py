@@ -111,8 +111,8 @@ KEYPOINT_PENALTY = 2.0  # score = IoU - this * (keypoint error / view width)
 # the mask alike, the one the image's edges confirm (benchmarks/accuracy.py: held-out hard AUC 60.8 -> 62.8).
 EDGE_SUPPORT_SCORE = 0.5
 # And this times the inner edges' support (edges.inner_edge_support): they confirm a pose where
-# the outline barely differs from the background (300 hard frames of seeds 11011 / 9009, one
-# thread: AUC 79.1 -> 79.9, off by more than 100 mm 38 -> 34; reallike unchanged; 1.0 did less).
+# the outline barely differs from the background (docs/PIPELINE.md, stage 8: hard frames of seeds
+# 11011 / 9009, AUC 79.1 -> 79.9 and, on all the inner edges, 77.4 -> 79.2; reallike unchanged).
 INNER_SUPPORT_SCORE = 0.5
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
 KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
