@@ -143,13 +143,14 @@ def inner_edges(colors: np.ndarray, depth: np.ndarray, mask: np.ndarray) -> tupl
     return np.stack([xs, ys], -1).astype(np.float64), normal / np.linalg.norm(normal, axis=-1, keepdims=True)
 
 
-def _inner_pulls(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, mask: np.ndarray,
-                 limit: int | None, rng: np.random.Generator,
-                 valid: Region | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """For up to ``limit`` (None: all) of the render's inner edge pixels (:func:`inner_edges`, of
-    the unlit ``colors`` ``[h, w, 3]``): the pixels ``[N, 2]``, the pixels they should move to
-    (by how far, along their normal, the image's edge lies from the render's own) and how much
-    each pull counts (:func:`_pull_weight`, where the render shows an edge too)."""
+def _inner_pulls(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, mask: np.ndarray, valid: Region | None,
+                 limit: int | None = None,
+                 rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """For ``limit`` of the render's inner edge pixels (:func:`inner_edges`, of the unlit
+    ``colors`` ``[h, w, 3]``) drawn by ``rng``, or all of them: the pixels ``[N, 2]``, the
+    pixels they should move to (by how far, along their normal, the image's edge lies from the
+    render's own) and how much each pull counts (:func:`_pull_weight`, where the render shows
+    an edge too)."""
     none = np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     ys, xs = np.nonzero(mask)
     if not len(xs):
@@ -163,7 +164,7 @@ def _inner_pulls(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, mask:
     pixels, normals = inner_edges(colors[box], depth[box], mask[box])
     if not len(pixels):
         return none
-    if limit is not None:
+    if limit is not None and rng is not None:
         pick = rng.choice(len(pixels), min(limit, len(pixels)), replace=False)
         pixels, normals = pixels[pick], normals[pick]
     own = np.concatenate([colors[box], INNER_DEPTH_SCALE * depth[box][..., None]], -1).astype(np.float32)
@@ -179,7 +180,7 @@ def inner_edge_terms(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, m
                      valid: Region | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Residual terms, as :func:`edge_terms` gives them, for :data:`INNER_POINTS` of the
     render's edges inside its silhouette (:func:`_inner_pulls`)."""
-    pixels, goals, pull = _inner_pulls(image, colors, depth, mask, INNER_POINTS, rng, valid)
+    pixels, goals, pull = _inner_pulls(image, colors, depth, mask, valid, INNER_POINTS, rng)
     if not len(pixels):
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     return outline_surface_points(pixels, depth, pose, K), goals, weight * pull / len(pixels)
@@ -190,5 +191,5 @@ def inner_edge_support(image: np.ndarray, colors: np.ndarray, depth: np.ndarray,
     """How well the render's edges inside its silhouette lie on the image's, in [0, 1]: the
     mean pull weight over all of them (:func:`_inner_pulls`; 0 where it has none), as
     :func:`edge_agreement`'s support is for the outline."""
-    pull = _inner_pulls(image, colors, depth, mask, None, np.random.default_rng(0), valid)[2]
+    pull = _inner_pulls(image, colors, depth, mask, valid)[2]
     return float(pull.mean()) if len(pull) else 0.0
