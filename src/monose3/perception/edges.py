@@ -144,10 +144,9 @@ def inner_edges(colors: np.ndarray, depth: np.ndarray, mask: np.ndarray) -> tupl
 
 
 def _inner_pulls(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, mask: np.ndarray, valid: Region | None,
-                 limit: int | None = None,
                  rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """For ``limit`` of the render's inner edge pixels (:func:`inner_edges`, of the unlit
-    ``colors`` ``[h, w, 3]``) drawn by ``rng``, or all of them: the pixels ``[N, 2]``, the
+    """For :data:`INNER_POINTS` of the render's inner edge pixels (:func:`inner_edges`, of the
+    unlit ``colors`` ``[h, w, 3]``) drawn by ``rng``, or without one all of them: the pixels ``[N, 2]``, the
     pixels they should move to (by how far, along their normal, the image's edge lies from the
     render's own) and how much each pull counts (:func:`_pull_weight`, where the render shows
     an edge too)."""
@@ -164,8 +163,8 @@ def _inner_pulls(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, mask:
     pixels, normals = inner_edges(colors[box], depth[box], mask[box])
     if not len(pixels):
         return none
-    if limit is not None and rng is not None:
-        pick = rng.choice(len(pixels), min(limit, len(pixels)), replace=False)
+    if rng is not None:
+        pick = rng.choice(len(pixels), min(INNER_POINTS, len(pixels)), replace=False)
         pixels, normals = pixels[pick], normals[pick]
     own = np.concatenate([colors[box], INNER_DEPTH_SCALE * depth[box][..., None]], -1).astype(np.float32)
     at_render, own_strength = find_edges(own, pixels, normals)
@@ -180,7 +179,7 @@ def inner_edge_terms(image: np.ndarray, colors: np.ndarray, depth: np.ndarray, m
                      valid: Region | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Residual terms, as :func:`edge_terms` gives them, for :data:`INNER_POINTS` of the
     render's edges inside its silhouette (:func:`_inner_pulls`)."""
-    pixels, goals, pull = _inner_pulls(image, colors, depth, mask, valid, INNER_POINTS, rng)
+    pixels, goals, pull = _inner_pulls(image, colors, depth, mask, valid, rng)
     if not len(pixels):
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     return outline_surface_points(pixels, depth, pose, K), goals, weight * pull / len(pixels)

@@ -78,12 +78,13 @@ from monose3.perception.silhouette import (
     Outline,
     mask_ious,
     outline_terms,
+    render_in_view,
     render_silhouettes,
     silhouette_ious,
 )
 from monose3.perception.views import MASK_THRESHOLD, MIN_MASK_FRACTION, ViewEvidence, parse_image, resized_view
 from monose3.robot import RobotModel
-from monose3.robot.renderer import RobotRenderer
+from monose3.robot.renderer import RenderOutput, RobotRenderer
 
 SCORE_SIZE = (160, 120)  # silhouettes of hypotheses are compared at this size
 KEEP_HYPOTHESES = 2  # refined per image
@@ -189,7 +190,7 @@ def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray,
     for _ in range(iterations):
         kp_dist = keypoint_distances(poses, keypoints_base, view)
         kp_weights = view.confidence / (1 + (kp_dist / (KEYPOINT_SCALE * view.size[0])) ** 2)
-        rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, view.size, shade=False)
+        rendered = render_in_view(renderer, joints, poses, view)
         masks, depths = rendered.mask.cpu().numpy(), rendered.depth.cpu().numpy()
         colors = renderer.unlit_colors(rendered.face.cpu().numpy()) if inner_edges else [None] * n
         points, goals, weights = [], [], []
@@ -355,14 +356,16 @@ def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, vie
     and how much of the outline and, with ``inner_edges``, of the inner edges lies on the image's
     edges), with what the ``reliable`` flag reads (the outline's distance to the image's edges)
     and the other poses' distance to the best."""
-    silhouettes = render_silhouettes(renderer, joints, poses, view, view.size)
+    # The inner edges need the render's depth and faces: its mask is then the silhouette (the
+    # same, pixel for pixel), not rendered again.
+    rendered = render_in_view(renderer, joints, poses, view) if inner_edges and view.image is not None else None
+    silhouettes = render_silhouettes(renderer, joints, poses, view, view.size) if rendered is None else rendered.mask
     ious = mask_ious(silhouettes, view)
     errors = keypoint_errors(poses, kp_base, view)
     edges = np.array([[0.0, math.inf]] * len(poses))
-    inner = np.zeros(len(poses))
     if view.image is not None:
         edges = np.array([edge_agreement(view.image, mask, view.valid) for mask in silhouettes.cpu().numpy()])
-        inner = inner_supports(renderer, joints, poses, view) if inner_edges else inner
+    inner = np.zeros(len(poses)) if rendered is None else inner_supports(renderer, rendered, view)
     scores = fit_scores(ious, errors, view) + EDGE_SUPPORT_SCORE * edges[:, 0] + INNER_SUPPORT_SCORE * inner
     order = np.argsort(-scores)
     best = order[0]
@@ -373,11 +376,8 @@ def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, vie
     return fit
 
 
-def inner_supports(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence) -> np.ndarray:
-    """``[H]``: how well each pose's inner edges lie on the image's (``edges.inner_edge_support``)."""
-    n = len(poses)
-    K = torch.from_numpy(view.K)[None].expand(n, 3, 3)
-    rendered = renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, view.size, shade=False)
+def inner_supports(renderer: RobotRenderer, rendered: RenderOutput, view: ViewEvidence) -> np.ndarray:
+    """``[H]``: how well each ``rendered`` pose's inner edges lie on the image's (``edges.inner_edge_support``)."""
     colors = renderer.unlit_colors(rendered.face.cpu().numpy())
     parts = zip(colors, rendered.depth.cpu().numpy(), rendered.mask.cpu().numpy(), strict=True)
     return np.array([inner_edge_support(view.image, color, depth, mask, view.valid) for color, depth, mask in parts])

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 
 from monose3.geometry.camera import scale_K
 from monose3.perception.views import MASK_THRESHOLD, Region, ViewEvidence
-from monose3.robot.renderer import RobotRenderer
+from monose3.robot.renderer import RenderOutput, RobotRenderer
 
 OUTLINE_POINTS = 300  # render outline pixels used per iteration
 # The silhouette terms' total weights in the solve (each keypoint weighs its confidence, <= 1):
@@ -29,6 +29,14 @@ def render_silhouettes(renderer: RobotRenderer, joints: np.ndarray, poses: np.nd
     n = len(poses)
     K = torch.from_numpy(scale_K(view.K, view.size, size))[None].expand(n, 3, 3)
     return renderer.silhouettes(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, size)
+
+
+def render_in_view(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence) -> RenderOutput:
+    """``poses`` ``[H, 4, 4]`` rendered unshaded in ``view`` at its size (one batch): the masks
+    :func:`render_silhouettes` gives, with depth and face ids."""
+    n = len(poses)
+    K = torch.from_numpy(view.K)[None].expand(n, 3, 3)
+    return renderer.render(np.repeat(joints[None], n, 0), torch.from_numpy(poses), K, view.size, shade=False)
 
 
 def mask_ious(silhouettes: torch.Tensor, view: ViewEvidence) -> np.ndarray:
