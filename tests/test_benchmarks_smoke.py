@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import pytest
 import torch
 
@@ -287,6 +288,24 @@ def test_wilson_interval_holds_the_share_and_narrows_with_frames() -> None:
     assert lo == pytest.approx(0.069, abs=1e-3) and hi == pytest.approx(0.284, abs=1e-3)  # the textbook values
     assert wilson(60, 410)[1] - wilson(60, 410)[0] < hi - lo
     assert wilson(0, 10)[0] == pytest.approx(0.0, abs=1e-12) and 0 < wilson(0, 10)[1] < 0.3
+
+
+def test_reliable_flag_chooses_on_saved_features_with_the_close_fits_edge_allowance(tmp_path: Path, capsys) -> None:
+    """``--features`` chooses on what ``--json`` wrote, fitting nothing; the shipped rule lets a fit
+    that matches the mask closely lie further off the image's edges; a bad file is one line."""
+    flag = load("reliable_flag")
+    rows = {"add": [0.005, 0.005, 0.2, 0.2], "iou": [0.95, 0.85, 0.95, 0.85], "edge_distance": [1.0, 1.0, 1.5, 1.0],
+            "support": [0.5] * 4, "spread": [5.0] * 4, "inside": [1.0] * 4, "depth_per_pixel": [10.0] * 4}  # fmt: skip
+    features = {k: np.array(v) for k, v in rows.items()}
+    assert flag.flag(features, flag.SHIPPED).tolist() == [False, True, True, True]
+    saved = tmp_path / "features.json"
+    saved.write_text(json.dumps({"frames": {"features": rows}, "all": {"features": rows}}))
+    assert flag.main(["--features", str(saved), "--recall", "1"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("4 frames, 2 with ADD > 30 mm") and "the flag as shipped" in out
+    assert "recall 100.0 %, false alarms 50.0 %" in out  # the shipped rule on them
+    assert flag.main(["--features", str(tmp_path / "missing.json")]) == 2
+    assert "--features" in capsys.readouterr().err
 
 
 def test_reliable_flag_asks_for_frames() -> None:

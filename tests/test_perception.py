@@ -30,10 +30,11 @@ from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_po
 from monose3.perception.hypotheses import pnp_hypotheses, sphere_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.reliability import (
-    RELIABLE_DEPTH_PER_PIXEL_MM,
-    RELIABLE_SPREAD_MM,
+    FLAG_LIMITS,
+    SECOND_LOOK_LIMITS,
     depth_per_pixel_mm,
     fit_doubts,
+    fit_reasons,
 )
 from monose3.perception.silhouette import Outline
 from monose3.perception.views import (
@@ -467,10 +468,29 @@ def test_fit_doubts_name_each_failed_check(sample):
     reasons = doubted.doubts()
     assert len(reasons) == 4 and "IoU 0.45 < 0.5" in reasons[0] and "1.30 px off the image's edges" in reasons[1]
     assert reasons[2] == "10 % of the outline on the image's edges < 20 %"
-    assert reasons[3] == f"restarts in depth ended 45 mm apart > {RELIABLE_SPREAD_MM:g} mm"
+    assert reasons[3] == f"restarts in depth ended 45 mm apart > {FLAG_LIMITS.spread_mm:g} mm"
     no_edges = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None])  # a flat image: nothing confirms the outline
     assert no_edges.doubts() == ["no image edge along the outline"]
     assert not_found(view).doubts() == ["the robot was not found"]
+
+
+def test_a_close_silhouette_may_lie_further_off_the_image_edges_and_the_second_look_is_more_eager(sample):
+    """The outline's distance to the image's edges counts from 0.8 px where the silhouette fits the
+    mask by less than 0.9 IoU, from 1.2 px where it fits closer; the second look's trigger keeps
+    0.8 px everywhere, and a restarts' spread the flag lets pass (20-25 mm) still triggers it."""
+    view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), sample[1], np.array([0.0, 0, 4, 4]))
+
+    def fit(iou: float, edge_px: float, spread_mm: float = 0.0) -> Fit:
+        return Fit(np.eye(4), iou, 1.0, iou, view, np.eye(4)[None], edge_support=0.8, edge_distance_px=edge_px,
+                   spread_mm=spread_mm)  # fmt: skip
+
+    off = "outline {:.2f} px off the image's edges > {:g}"
+    assert fit_reasons(fit(0.95, 1.0)) == [] and fit_reasons(fit(0.85, 1.0)) == [off.format(1.0, 0.8)]
+    assert fit_reasons(fit(0.95, 1.3)) == [off.format(1.3, 1.2)]
+    assert fit_reasons(fit(0.95, 1.0), SECOND_LOOK_LIMITS) == [off.format(1.0, 0.8)]
+    assert fit_reasons(fit(0.95, 0.5, spread_mm=22.0)) == []
+    spread = fit_reasons(fit(0.95, 0.5, spread_mm=22.0), SECOND_LOOK_LIMITS)
+    assert spread == ["restarts in depth ended 22 mm apart > 20 mm"]
 
 
 def test_the_depth_per_pixel_is_the_depth_that_changes_the_robots_image_size_by_a_pixel(panda, sample):
@@ -506,7 +526,7 @@ def test_a_robot_too_small_for_its_distance_is_doubted(panda, sample):
         if doubted:
             depth_mm = depth_per_pixel_mm(panda, pose, joints, K)
             assert reasons == [f"a pixel of the robot's size in the image is {depth_mm:.0f} mm of depth > "
-                               f"{RELIABLE_DEPTH_PER_PIXEL_MM:g} mm: "
+                               f"{FLAG_LIMITS.depth_per_pixel_mm:g} mm: "
                                "too small to fix its distance"]  # fmt: skip
 
 

@@ -92,7 +92,7 @@ class PoseResult:
     def reliable(self) -> bool | None:
         """ "fit": whether the fit can be trusted: the silhouette fits the mask, its outline lies
         on the image's edges, its restarts in depth agree, the robot is large enough in the image
-        to fix its depth, and most of it is in the image (``perception.reliability.RELIABLE_*``;
+        to fix its depth, and most of it is in the image (``perception.reliability.FLAG_LIMITS``;
         :attr:`doubts` says which failed). The paper's samplers: whether the chains agree within
         ``UNRELIABLE_MM``; None with one chain (nothing to compare)."""
         if self.estimate.reliable is not None:

@@ -37,9 +37,10 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
    runs again from the best pose moved :data:`DEPTH_RESTART` of its distance nearer and
    further; each restart finds its own edges, and the better one is the pose. How far apart
    the two end (``Fit.spread_mm``) tells how firmly the image fixes the depth.
-8. **Second look.** When the fit gives a reason to doubt it (:meth:`Fit.doubts`), steps 3-7
-   run again from a denser sphere alone (``hypotheses.DENSE_AZIMUTHS`` x ``DENSE_ELEVATIONS``,
-   each pose facing the robot along its ray; PnP's poses had their turn), and the better
+8. **Second look.** When the fit gives a reason to doubt it (``reliability.SECOND_LOOK_LIMITS``,
+   more eager than the flag's), steps 3-7 run again from a denser sphere alone
+   (``hypotheses.DENSE_AZIMUTHS`` x ``DENSE_ELEVATIONS``, each pose facing the robot along its
+   ray; PnP's poses had their turn), and the better
    scoring of the two fits is the pose: the 16 poses of step 2 are often 20 degrees from a
    hard robot's orientation, too far for the refinement, and a doubted fit is where that shows.
 
@@ -67,12 +68,7 @@ from monose3.perception.edges import edge_agreement, edge_terms, inner_edge_supp
 from monose3.perception.hypotheses import DENSE_AZIMUTHS, DENSE_ELEVATIONS, pnp_hypotheses, sphere_hypotheses
 from monose3.perception.local_search import DEFAULT_SEARCH, SearchConfig, search_locally
 from monose3.perception.parser import RobotParser
-from monose3.perception.reliability import (
-    RELIABLE_EDGE_DISTANCE_PX,
-    RELIABLE_EDGE_SUPPORT,
-    RELIABLE_IOU,
-    RELIABLE_SPREAD_MM,
-)
+from monose3.perception.reliability import SECOND_LOOK_LIMITS, fit_reasons
 from monose3.perception.silhouette import (
     OUTLINE_SCALE,
     Outline,
@@ -137,23 +133,9 @@ class Fit:
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
 
     def doubts(self) -> list[str]:
-        """Why the fit is not to be trusted, in words (empty: it is reliable, as far as the fit can tell)."""
-        if not self.found:
-            return ["the robot was not found"]
-        reasons = []
-        if self.iou < RELIABLE_IOU:
-            reasons.append(f"silhouette IoU {self.iou:.2f} < {RELIABLE_IOU}")
-        if math.isinf(self.edge_distance_px):
-            return [*reasons, "no image edge along the outline"]
-        if self.edge_distance_px > RELIABLE_EDGE_DISTANCE_PX:
-            off = self.edge_distance_px
-            reasons.append(f"outline {off:.2f} px off the image's edges > {RELIABLE_EDGE_DISTANCE_PX}")
-        if self.edge_support < RELIABLE_EDGE_SUPPORT:
-            share = 100 * self.edge_support
-            reasons.append(f"{share:.0f} % of the outline on the image's edges < {100 * RELIABLE_EDGE_SUPPORT:.0f} %")
-        if self.spread_mm > RELIABLE_SPREAD_MM:
-            reasons.append(f"restarts in depth ended {self.spread_mm:.0f} mm apart > {RELIABLE_SPREAD_MM:g} mm")
-        return reasons
+        """Why the fit is not to be trusted, in words, as the ``reliable`` flag reads its numbers
+        (:func:`~monose3.perception.reliability.fit_reasons`; empty: it is, as far as the fit can tell)."""
+        return fit_reasons(self)
 
 
 def keypoint_distances(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
@@ -309,7 +291,7 @@ def fit_pose(
     if not first:
         return not_found(view)
     fit = _fit_hypotheses(renderer, np.stack(first), clock=clock, **stages)
-    if second_look and refine and fit.doubts():
+    if second_look and refine and fit_reasons(fit, SECOND_LOOK_LIMITS):
         dense = sphere_hypotheses(view, surface, DENSE_AZIMUTHS, DENSE_ELEVATIONS, facing=True)
         other = _fit_hypotheses(renderer, np.stack(dense), clock=_Clock(), **stages) if dense else fit
         fit = other if other.score > fit.score else fit
