@@ -44,7 +44,7 @@ class Limits:
         return self.close_edge_distance_px if iou >= self.close_iou else self.edge_distance_px
 
 
-# The ``reliable`` flag. Chosen on 1,400 hard and 440 reallike frames of their own
+# The ``reliable`` flag. Chosen on 1,180 hard and 440 reallike frames of their own
 # (benchmarks/reliable_flag.py: generate --renderer tiny, seeds 3003-12012) for at least 94 % recall
 # of estimates off by more than 30 mm (a margin over the goal's 90 %) at the fewest false alarms,
 # and checked on 400 frames generated after the choice (seeds 13013, 14014); the thresholds'
