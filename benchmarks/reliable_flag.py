@@ -135,7 +135,7 @@ def frame_features(estimator, frames, name: str) -> list[dict]:
 
 def flag(f: dict, limits: reliability.Limits) -> np.ndarray:
     """Unreliable, as ``reliability.fit_doubts`` decides it, for ``limits``."""
-    edge_limit = np.where(f["iou"] >= limits.close_iou, limits.close_edge_distance_px, limits.edge_distance_px)
+    edge_limit = limits.edge_limit_px(f["iou"])
     return ((f["iou"] < limits.iou) | ~(f["edge_distance"] <= edge_limit) | (f["inside"] < reliability.MIN_INSIDE)
             | (f["support"] < limits.edge_support) | (f["spread"] > limits.spread_mm)
             | (f["depth_per_pixel"] > limits.depth_per_pixel_mm))  # fmt: skip

@@ -39,9 +39,10 @@ class Limits:
     close_iou: float = math.inf
     close_edge_distance_px: float = math.inf
 
-    def edge_limit_px(self, iou: float) -> float:
-        """How far (view pixels, RMS) the outline may lie off the image's edges at this IoU."""
-        return self.close_edge_distance_px if iou >= self.close_iou else self.edge_distance_px
+    def edge_limit_px(self, iou: float | np.ndarray) -> np.ndarray:
+        """How far (view pixels, RMS) the outline may lie off the image's edges at this IoU (or
+        these, elementwise: the benchmark reads many fits at once)."""
+        return np.where(np.asarray(iou) >= self.close_iou, self.close_edge_distance_px, self.edge_distance_px)
 
 
 # The ``reliable`` flag. Chosen on 1,180 hard and 440 reallike frames of their own
@@ -91,7 +92,7 @@ def fit_reasons(fit: Fit, limits: Limits = FLAG_LIMITS) -> list[str]:
         reasons.append(f"silhouette IoU {fit.iou:.2f} < {limits.iou}")
     if math.isinf(fit.edge_distance_px):
         return [*reasons, "no image edge along the outline"]
-    edge_limit = limits.edge_limit_px(fit.iou)
+    edge_limit = float(limits.edge_limit_px(fit.iou))
     if fit.edge_distance_px > edge_limit:
         reasons.append(f"outline {fit.edge_distance_px:.2f} px off the image's edges > {edge_limit}")
     if fit.edge_support < limits.edge_support:
