@@ -1,95 +1,45 @@
-"""How the ``reliable`` flag of the default pipeline is chosen: its thresholds (silhouette IoU,
-the RMS distance of the outline to the image's own edges, the share of the outline on them,
-how far apart the restarts in depth end, the depth a pixel of the robot's size in the image
-stands for) on frames of their own, for a target recall of bad estimates (ADD > ``--bad-mm``)
-at the fewest false alarms.
+"""How the ``reliable`` flag of the default pipeline is chosen: a logistic model of the odds that
+a fit is off by more than 30 mm (ADD), read from the fit's numbers (``reliability.fit_numbers``:
+silhouette IoU, the RMS distance of the outline to the image's own edges and its share on them,
+how far apart the restarts in depth end, the share of the robot in the image, the depth a pixel
+of its size stands for, how well its inner edges lie on the image's), fitted on frames of their
+own, with the odds that flag set for a target recall of bad estimates at the fewest false alarms.
 
-Prints the best thresholds found on ``--data`` (the fewest false alarms at ``--recall`` or
-more) and how the flag with the thresholds in ``perception/reliability.py`` does there. The frames
-must not be the held-out sets the README reports on (``benchmarks/accuracy.py`` measures the
-flag there). ``--check`` measures the flag as shipped, with 95 % (Wilson) intervals, on frames
-that had no part in choosing it (no search there, so nothing is tuned on them): the 60 frames
-of ``accuracy.py``'s sets leave the false alarms uncertain by about +-10 points.
+``--data`` / ``--features`` (frames, or the features ``--json`` saved of them) choose: the model
+fitted there, printed as the preset to paste into ``perception/reliability.py``, with its recall
+and false alarms there and the shipped model's; with several folders, each folder is also
+predicted by a model fitted on the others (leave one folder out: figures for frames the model
+never saw). The frames must not be the held-out sets the README reports on
+(``benchmarks/accuracy.py`` measures the flag there). ``--check`` measures the flag as shipped,
+with 95 % (Wilson) intervals, on frames that had no part in choosing it.
 
-The thresholds shipped were chosen on 820 frames (seeds 3003-8008) for at least 91 % recall, a
-margin over the goal's 90 %: a rule chosen at exactly 90 % falls below it on new frames about
-half the time. The frames of seeds 7007 and 8008 were a ``--check`` set first, which showed the
-thresholds chosen on the first 420 frames (IoU 0.6) giving 12.6 % false alarms on hard ones;
-they then joined the choice, and 400 frames generated after it (9009, 10010) check it. The
-choice was made again with the mirrored views' masks (``views.parse_view``; the same
-thresholds) and with the restarts in depth (``fitting.restarted_fit``: their spread came in,
-the edge support went from 0.4 to 0.2) and with the depth per pixel (``reliability.depth_per_pixel_mm``:
-it came in, the spread went from 20 to 40 mm) and with the zoomed view's context masks
-(``views.CONTEXT_SCALES``: the spread back to 20 mm, the depth per pixel from 38 to 32 mm), and
-the check run again each time; the second look (``fitting.fit_pose``, step 8) came with the
-check run again and the thresholds kept, and the choice, run again with it (the 820 frames'
-features as ``frame_features`` gives them, one thread), kept them too: the shipped rule flags
-88.4 % of the 129 bad estimates there with 7.1 % false alarms, the search's best rule at 91 %
-(IoU 0.3, 0.8 px, support 0, spread 15 mm, depth per pixel 36 mm: 91.5 %, 8.4 %) catches no
-more of the check's 63 bad hard estimates (58) with more false alarms (33 of 237 against 31,
-and 1 of 100 reallike against none).
+The model shipped (``reliability.FLAG_MODEL``, the eighteenth session) was fitted on the 1,200
+hard frames of seeds 7007, 9009, 11011 and 13013 for 93 % recall; their features, as
+``frame_features`` gives them with one thread (made by a script over chunks of 25 frames), are
+in ``docs/results/reliable_flag_features.json``. There it flags 93.4 % of the 227 bad estimates
+with 6.2 % false alarms; each seed's frames predicted by a model fitted on the other three,
+93.0 % with 6.8 %. Until then the flag was thresholds on each number, chosen by a grid search
+here for 91 % and then 94 % recall on seeds 3003-12012 (their features in
+``reliable_flag_choice.json``, ``reliable_flag.json``, ``reliable_flag_check2.json`` and
+``reliable_flag_check3.json``, which lack the inner edges' support); on frames generated after
+each choice they kept falling below 90 % recall or above 10 % false alarms on hard frames
+(docs/ACCURACY.md has each session's figures). The model's inner edges' support is what cut
+the false alarms: the same model without it, 91.6 % with 8.8 %.
 
-The fifteenth session brought the robot's inner edges into the fit (``edges.inner_edge_terms``)
-and chose the thresholds again on the 820 frames' new fits: the best rule at 91 % (IoU 0.3,
-0.9 px, support 0.2, spread 30 mm, depth per pixel 38 mm) caught 51 of the 59 bad estimates of
-seed 9009's hard check frames, and at 94 % (IoU 0.3, 0.85 px, support 0.3, spread 25 mm, depth
-per pixel 38 mm: 94.6 % recall, 5.2 % false alarms on the 820) 54 of 59 with 9.5 % false alarms;
-as that target was picked after seeing them, 400 more frames were generated (seeds 11011 and
-12012, hard and reallike), where it caught 48 of 55 (87.3 %) with 11.8 % false alarms on hard.
-The thresholds were kept, recall before false alarms: they caught 57 of seed 9009's 59 (14.5 %
-false alarms) and 50 of seed 11011's 55 (13.9 %). The sixteenth session (the inner edges in the
-final choice's score) measured trusting a doubted fit whose two looks end at the same pose, which
-moved along the same trade-off (docs/PIPELINE.md, stage 8), and kept the thresholds: with its
-fits they catch 55 of seed 9009's 57 (14.4 %) and 47 of seed 11011's 51 (15.3 %). (These fits
-were made as ``frame_features`` makes them, one thread, by a script over chunks of 50 frames;
-``--check`` was not run itself.)
+The commands (``--check`` writes the features as the script did; ``--features`` fits on them):
 
-The seventeenth session chose them again on all the frames fitted with the final code of the
-sixteenth (the 820 of seeds 3003-8008 and the 800 of seeds 9009-12012: 1,180 hard, 440
-reallike; ``--features`` over the JSON files below), with one more pair of thresholds: where
-the silhouette fits the mask at least ``close_iou``, the outline may lie up to
-``close_edge_distance_px`` off the image's edges (a wrong mask is rarely a robot's shape, so a
-fit that matches it closely is mostly a good fit in a soft image; most false alarms were good
-fits flagged for the edges alone). For at least 94 % recall (the 91 % of before fell below 90 %
-on new frames), the grid's best rule (IoU 0.3, 0.8 px or 1.1 px at IoU 0.9, support 0, spread
-25 mm, depth per pixel 34 mm) flags 88 good hard estimates; the one kept keeps the IoU's and
-the support's thresholds as they were, for 2 more: the rule before with the spread at 25 mm,
-the depth per pixel at 34 mm and 1.2 px where the IoU is 0.9 or more (94.4 % recall, 9.3 %
-false alarms on the 1,180 hard frames, against 95.8 % and 14.3 % with the rule before; the
-best rule without the new pair at that recall, 10.4 %). Checked on 400
-frames generated after the choice (seeds 13013 hard, 14014 reallike): recall 59 of 65 (90.8 %)
-with 29 false alarms of 235 (12.3 %), where the thresholds before catch 60 with 36 (15.3 %);
-reallike 1 of 1, none of 99. The second look's trigger keeps the thresholds before
-(``reliability.SECOND_LOOK_LIMITS``), so the fits, and the features above, stay as they were.
-The commands:
-
-    monose3 generate --out data/calib_hard_tiny --num 80 --seed 3003 --profile hard --renderer tiny
-    monose3 generate --out data/calib_reallike_tiny --num 40 --seed 4004 --profile reallike --renderer tiny
-    monose3 generate --out data/calib2_hard_tiny --num 200 --seed 5005 --profile hard --renderer tiny
-    monose3 generate --out data/calib2_reallike_tiny --num 100 --seed 6006 --profile reallike --renderer tiny
     monose3 generate --out data/calib3_hard_tiny --num 300 --seed 7007 --profile hard --renderer tiny
-    monose3 generate --out data/calib3_reallike_tiny --num 100 --seed 8008 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --data data/calib*_tiny --recall 0.91 --threads 1
     monose3 generate --out data/check_hard_tiny --num 300 --seed 9009 --profile hard --renderer tiny
-    monose3 generate --out data/check_reallike_tiny --num 100 --seed 10010 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --check data/check_hard_tiny data/check_reallike_tiny --threads 1 \\
-        --json docs/results/reliable_flag.json
     monose3 generate --out data/check2_hard_tiny --num 300 --seed 11011 --profile hard --renderer tiny
-    monose3 generate --out data/check2_reallike_tiny --num 100 --seed 12012 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --check data/check2_hard_tiny data/check2_reallike_tiny --threads 1 \\
-        --json docs/results/reliable_flag_check2.json
-    python benchmarks/reliable_flag.py --recall 0.94 --features docs/results/reliable_flag_choice.json \\
-        docs/results/reliable_flag.json docs/results/reliable_flag_check2.json
     monose3 generate --out data/check3_hard_tiny --num 300 --seed 13013 --profile hard --renderer tiny
-    monose3 generate --out data/check3_reallike_tiny --num 100 --seed 14014 --profile reallike --renderer tiny
-    python benchmarks/reliable_flag.py --check data/check3_hard_tiny data/check3_reallike_tiny --threads 1 \\
-        --json docs/results/reliable_flag_check3.json
+    python benchmarks/reliable_flag.py --check data/calib3_hard_tiny data/check_hard_tiny data/check2_hard_tiny \\
+        data/check3_hard_tiny --threads 1 --json docs/results/reliable_flag_features.json
+    python benchmarks/reliable_flag.py --recall 0.93 --features docs/results/reliable_flag_features.json
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import math
 import sys
@@ -103,42 +53,57 @@ from monose3.api import load_estimator
 from monose3.data.datasets import open_dataset
 from monose3.errors import Monose3Error, run_reporting_errors
 from monose3.perception import fitting, reliability
+from monose3.perception.reliability import BAD_MM, NUMBERS, DoubtModel
 from monose3.report.metrics import add_per_frame
 
-IOUS = (0.3, 0.4, 0.5, 0.6)
-EDGE_DISTANCES_PX = np.round(np.arange(0.7, 1.01, 0.05), 2)
-SUPPORTS = (0.0, 0.2, 0.3)
-SPREADS_MM = (15.0, 20.0, 25.0, 30.0, 40.0, np.inf)
-DEPTHS_PER_PIXEL_MM = (28.0, 30.0, 32.0, 34.0, 36.0, 38.0, 40.0)
-CLOSE_IOUS = (0.8, 0.85, 0.88, 0.9, 0.92, np.inf)
-CLOSE_EDGE_DISTANCES_PX = (0.9, 1.0, 1.1, 1.2, np.inf)
-SHIPPED = reliability.FLAG_LIMITS
+SHIPPED = reliability.FLAG_MODEL
+L2 = 1e-3  # ridge on the standardised inputs: keeps the weights finite where the classes separate
 
 
 def frame_features(estimator, frames, name: str) -> list[dict]:
-    """Per frame of ``frames`` (a dataset; ``name`` for the progress bar): the default fit's
-    ADD (m), IoU, edge distance (px), edge support, restarts' spread (mm), robot share in the
-    image, depth per pixel (mm)."""
+    """Per frame of ``frames`` (a dataset; ``name`` for the progress bar): the default fit's ADD
+    (m) and the numbers the flag reads (``reliability.fit_numbers``)."""
     rows = []
     for i in tqdm(range(len(frames)), desc=name):
         frame = frames[i]
         image = frame.load_image()
         fit = fitting.fit_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
         pred = estimator.robot.keypoints(frame.joints[None], fit.pose[None])  # NaN when not found: ADD inf
-        inside = reliability.inside_fraction(estimator.robot, fit.pose, frame.joints, frame.K, image.shape)  # 0 then
-        depth_mm = reliability.depth_per_pixel_mm(estimator.robot, fit.pose, frame.joints, frame.K)  # inf then
-        rows.append({"add": float(add_per_frame(pred, frame.keypoints_3d[None])[0]), "iou": fit.iou,
-                     "edge_distance": fit.edge_distance_px, "support": fit.edge_support, "spread": fit.spread_mm,
-                     "inside": inside, "depth_per_pixel": depth_mm})  # fmt: skip
+        numbers = reliability.fit_numbers(fit, estimator.robot, frame.joints, frame.K, image.shape)
+        rows.append({"add": float(add_per_frame(pred, frame.keypoints_3d[None])[0]), **numbers})
     return rows
 
 
-def flag(f: dict, limits: reliability.Limits) -> np.ndarray:
-    """Unreliable, as ``reliability.fit_doubts`` decides it, for ``limits``."""
-    edge_limit = limits.edge_limit_px(f["iou"])
-    return ((f["iou"] < limits.iou) | ~(f["edge_distance"] <= edge_limit) | (f["inside"] < reliability.MIN_INSIDE)
-            | (f["support"] < limits.edge_support) | (f["spread"] > limits.spread_mm)
-            | (f["depth_per_pixel"] > limits.depth_per_pixel_mm))  # fmt: skip
+def fit_model(f: dict[str, np.ndarray], recall_goal: float) -> DoubtModel:
+    """The logistic model of ADD > :data:`BAD_MM` fitted on the frames' features ``f`` (L-BFGS
+    on standardised inputs, ridge :data:`L2`), flagging from the odds that catch ``recall_goal``
+    of the bad estimates there; ``typical``: the good fits' medians."""
+    bad = f["add"] > BAD_MM / 1000
+    inputs = reliability.model_inputs(f)
+    x = np.stack([inputs[k] for k in NUMBERS], 1)
+    mean, std = x.mean(0), x.std(0) + 1e-9
+    xs, y = torch.tensor((x - mean) / std), torch.tensor(bad, dtype=torch.float64)
+    w = torch.zeros(len(NUMBERS), dtype=torch.float64, requires_grad=True)
+    b = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.LBFGS([w, b], max_iter=500, line_search_fn="strong_wolfe")
+
+    def loss() -> torch.Tensor:
+        opt.zero_grad()
+        value = torch.nn.functional.binary_cross_entropy_with_logits(xs @ w + b, y) + L2 * (w * w).sum()
+        value.backward()
+        return value
+
+    opt.step(loss)
+    weights = w.detach().numpy() / std
+    model = DoubtModel(weights=dict(zip(NUMBERS, np.round(weights, 4).tolist(), strict=True)),
+                       bias=round(b.item() - float(weights @ mean), 4), threshold=0.5,
+                       typical={k: round(float(np.median(f[k][~bad])), 3) for k in NUMBERS})  # fmt: skip
+    # the odds that, with the sure doubts, flag recall_goal of the bad estimates
+    unsure = ~np.logical_or.reduce(list(reliability.sure_doubts(f).values()))
+    odds = np.sort(model.odds(f)[bad & unsure])[::-1]
+    needed = math.ceil(recall_goal * bad.sum()) - int((bad & ~unsure).sum())
+    threshold = float(odds[min(needed, len(odds)) - 1]) if needed > 0 and len(odds) else 1.0
+    return DoubtModel(model.weights, model.bias, math.floor(threshold * 1e4) / 1e4, model.typical)
 
 
 def rates(flagged: np.ndarray, bad: np.ndarray) -> tuple[float, float]:
@@ -169,24 +134,27 @@ def features(rows: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.array([r[k] for r in rows], float) for k in rows[0]}
 
 
-def check(per_folder: dict[str, dict[str, np.ndarray]], bad_mm: float) -> dict:
+def counts(f: dict[str, np.ndarray], model: DoubtModel) -> tuple[int, int, int, int]:
+    """(bad caught, bad, good flagged, good) of ``model``'s flag on the frames' features ``f``."""
+    bad, flagged = f["add"] > BAD_MM / 1000, model.doubted(f)
+    return int(flagged[bad].sum()), int(bad.sum()), int((flagged & ~bad).sum()), int((~bad).sum())
+
+
+def check(per_folder: dict[str, dict[str, np.ndarray]]) -> dict:
     """The shipped flag's recall and false alarms on each folder's frame features (folder:
     features) and on all of them (printed; returned with each frame's features)."""
     if len(per_folder) > 1:
         per_folder = {**per_folder, "all": pooled(list(per_folder.values()))}
     results = {}
     for name, f in per_folder.items():
-        bad, flagged = f["add"] > bad_mm / 1000, flag(f, SHIPPED)
-        outside = flagged & ~bad & (f["inside"] < reliability.MIN_INSIDE)
-        n_bad, caught, alarms = int(bad.sum()), int(flagged[bad].sum()), int((flagged & ~bad).sum())
-        results[name] = {"frames": len(bad), "bad": n_bad, "caught": caught, "false_alarms": alarms,
+        caught, n_bad, alarms, n_good = counts(f, SHIPPED)
+        results[name] = {"frames": n_bad + n_good, "bad": n_bad, "caught": caught, "false_alarms": alarms,
                          "recall_95": _numbers(wilson(caught, n_bad)),
-                         "false_alarms_95": _numbers(wilson(alarms, len(bad) - n_bad)),
+                         "false_alarms_95": _numbers(wilson(alarms, n_good)),
                          "features": {k: _numbers(v) for k, v in f.items()}}  # fmt: skip
-        print(f"{name}: {len(bad)} frames, {bad.sum()} with ADD > {bad_mm:g} mm; the flag as shipped:")
+        print(f"{name}: {n_bad + n_good} frames, {n_bad} with ADD > {BAD_MM:g} mm; the flag as shipped:")
         print(f"  recall {share_text(caught, n_bad)}")
-        print(f"  false alarms {share_text(alarms, len(bad) - n_bad)}"
-              f", {outside.sum()} of them with less than half the robot in the image")  # fmt: skip
+        print(f"  false alarms {share_text(alarms, n_good)}")
     return results
 
 
@@ -199,36 +167,39 @@ def saved_features(paths: list[str]) -> dict[str, dict[str, np.ndarray]]:
                 data = json.load(fh)
             for folder, result in data.items():
                 if folder != "all":
-                    out[f"{path}:{folder}"] = {k: np.array(v, float) for k, v in result["features"].items()}
+                    numbers = result["features"]  # strict JSON wrote an infinite number as null
+                    out[f"{path}:{folder}"] = {k: _infinite_where_null(numbers[k]) for k in ("add", *NUMBERS)}
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
             raise Monose3Error(f"--features {path}: not a file of frame features as --json writes them ({e})") from e
     return out
 
 
-def describe(limits: reliability.Limits) -> str:
-    return (f"IoU >= {limits.iou:.2f}, edge distance <= {limits.edge_distance_px:.2f} px (<= "
-            f"{limits.close_edge_distance_px:g} px at IoU >= {limits.close_iou:g}), support >= "
-            f"{limits.edge_support:.2f}, spread <= {limits.spread_mm:g} mm, depth per pixel <= "
-            f"{limits.depth_per_pixel_mm:g} mm")  # fmt: skip
+def choose(per_folder: dict[str, dict[str, np.ndarray]], recall_goal: float) -> DoubtModel:
+    """Fit the flag's model on all the folders' frames for ``recall_goal``; print it, its figures
+    and the shipped model's there, and, with several folders, each folder's figures under a
+    model fitted on the others."""
+    f = pooled(list(per_folder.values()))
+    model = fit_model(f, recall_goal)
+    caught, n_bad, alarms, n_good = counts(f, model)
+    print(f"{n_bad + n_good} frames, {n_bad} with ADD > {BAD_MM:g} mm; for {100 * recall_goal:g} % recall:")
+    print(f"  FLAG_MODEL = {model!r}")
+    print(f"  there: recall {share_text(caught, n_bad)}, false alarms {share_text(alarms, n_good)}")
+    caught, n_bad, alarms, n_good = counts(f, SHIPPED)
+    print(f"the flag as shipped there: recall {share_text(caught, n_bad)}, false alarms {share_text(alarms, n_good)}")
+    if len(per_folder) > 1:
+        print("each folder by a model fitted on the others:")
+        total = np.zeros(4, int)
+        for name, held in per_folder.items():
+            others = fit_model(pooled([g for other, g in per_folder.items() if other != name]), recall_goal)
+            figures = counts(held, others)
+            total += figures
+            print(f"  {name}: recall {share_text(*figures[:2])}, false alarms {share_text(*figures[2:])}")
+        print(f"  all: recall {share_text(*total[:2])}, false alarms {share_text(*total[2:])}")
+    return model
 
 
-def choose(f: dict[str, np.ndarray], bad_mm: float, recall_goal: float) -> None:
-    """Print the five rules of the grid with the fewest false alarms at ``recall_goal`` or more
-    on the frames' features ``f``, and how the shipped rule does there."""
-    bad = f["add"] > bad_mm / 1000
-    print(f"{len(bad)} frames, {bad.sum()} with ADD > {bad_mm:g} mm")
-    found = []
-    grid = (IOUS, EDGE_DISTANCES_PX, SUPPORTS, SPREADS_MM, DEPTHS_PER_PIXEL_MM, CLOSE_IOUS, CLOSE_EDGE_DISTANCES_PX)
-    for iou, edge_px, support, spread, depth, close_iou, close_edge_px in itertools.product(*grid):
-        limits = reliability.Limits(iou, edge_px, support, spread, depth, close_iou, close_edge_px)
-        recall, false_alarms = rates(flag(f, limits), bad)
-        if recall >= recall_goal:
-            found.append((false_alarms, -recall, limits))
-    for false_alarms, recall, limits in sorted(found, key=lambda x: x[:2])[:5]:
-        print(f"  {describe(limits)}: recall {-100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
-    recall, false_alarms = rates(flag(f, SHIPPED), bad)
-    shipped = f"the flag as shipped ({describe(SHIPPED)})"
-    print(f"{shipped}: recall {100 * recall:.1f} %, false alarms {100 * false_alarms:.1f} %")
+def _infinite_where_null(values: list) -> np.ndarray:
+    return np.array([math.inf if v is None else v for v in values], float)
 
 
 def _numbers(values) -> list[float | None]:
@@ -237,12 +208,11 @@ def _numbers(values) -> list[float | None]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", nargs="+", default=[], help="frame folders to choose the thresholds on (not held-out)")
+    p.add_argument("--data", nargs="+", default=[], help="frame folders to choose the model on (not held-out)")
     p.add_argument("--features", nargs="+", default=[],
                    help="JSON files --json wrote: choose on the frame features they hold")  # fmt: skip
     p.add_argument("--check", nargs="+", default=[], help="frame folders never used to choose: measure the flag")
-    p.add_argument("--bad-mm", type=float, default=30.0)
-    p.add_argument("--recall", type=float, default=0.9, help="target share of bad estimates flagged")
+    p.add_argument("--recall", type=float, default=0.93, help="target share of bad estimates flagged")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", help="write --check's figures and each frame's features here")
 
@@ -256,20 +226,22 @@ def main(argv: list[str] | None = None) -> int:
             datasets = {folder: open_dataset(folder, estimator.robot) for folder in [*args.check, *args.data]}
             fitted = {folder: features(frame_features(estimator, datasets[folder], folder)) for folder in datasets}
         if args.check:
-            results = check({folder: fitted[folder] for folder in args.check}, args.bad_mm)
+            results = check({folder: fitted[folder] for folder in args.check})
             if args.json:
                 atomic.write_text(args.json, json.dumps(results, indent=1))
                 print(f"wrote {args.json}")
-        chosen_on = [fitted[folder] for folder in args.data] + list(saved.values())
+        chosen_on = {folder: fitted[folder] for folder in args.data} | saved
         if chosen_on:
-            choose(pooled(chosen_on), args.bad_mm, args.recall)
+            choose(chosen_on, args.recall)
         return 0
 
     args = p.parse_args(argv)
     if not args.data and not args.features and not args.check:
-        p.error("give --data or --features (choose the thresholds) and/or --check (measure the shipped flag)")
+        p.error("give --data or --features (choose the model) and/or --check (measure the shipped flag)")
     if args.json and not args.check:
         p.error("--json writes --check's figures: give --check FOLDER too")
+    if not 0 < args.recall <= 1:
+        p.error(f"--recall {args.recall:g}: give a share of the bad estimates in (0, 1]")
     return run_reporting_errors(run, "reliable_flag")
 
 

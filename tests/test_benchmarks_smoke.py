@@ -237,22 +237,22 @@ def test_accuracy_small(tmp_path: Path, tiny_dream: Path, capsys, keep_threads: 
 
 @pytest.mark.slow
 def test_reliable_flag_small(tiny_dream: Path, capsys, keep_threads: None) -> None:
-    """The threshold search runs on a folder and reports the shipped flag's recall and false alarms."""
+    """The model is fitted on a folder's fits and the shipped flag's recall and false alarms reported there."""
     flag = load("reliable_flag")
-    assert flag.main(["--data", str(tiny_dream), "--recall", "0"]) == 0
+    assert flag.main(["--data", str(tiny_dream), "--recall", "1"]) == 0
     out = capsys.readouterr().out
-    assert "frames" in out and "IoU >= " in out and "the flag as shipped" in out
+    assert "frames" in out and "FLAG_MODEL = " in out and "the flag as shipped" in out
 
 
 @pytest.mark.slow
 def test_reliable_flag_check_measures_without_searching(
     tiny_dream: Path, tmp_path: Path, capsys, keep_threads: None
 ) -> None:
-    """``--check`` reports the shipped flag with intervals, and chooses no thresholds there."""
+    """``--check`` reports the shipped flag with intervals, and fits no model there."""
     out_json = tmp_path / "flag.json"
     assert load("reliable_flag").main(["--check", str(tiny_dream), "--json", str(out_json)]) == 0
     out = capsys.readouterr().out
-    assert "the flag as shipped" in out and "false alarms" in out and "95 %" in out and "IoU >= " not in out
+    assert "the flag as shipped" in out and "false alarms" in out and "95 %" in out and "FLAG_MODEL" not in out
     result = json.loads(out_json.read_text())[str(tiny_dream)]
     assert len(result["features"]["add"]) == result["frames"] > 0 and len(result["false_alarms_95"]) == 2
 
@@ -290,20 +290,33 @@ def test_wilson_interval_holds_the_share_and_narrows_with_frames() -> None:
     assert wilson(0, 10)[0] == pytest.approx(0.0, abs=1e-12) and 0 < wilson(0, 10)[1] < 0.3
 
 
-def test_reliable_flag_chooses_on_saved_features_with_the_close_fits_edge_allowance(tmp_path: Path, capsys) -> None:
-    """``--features`` chooses on what ``--json`` wrote, fitting nothing; the shipped rule lets a fit
-    that matches the mask closely lie further off the image's edges; a bad file is one line."""
+def test_reliable_flag_fits_its_model_on_saved_features(tmp_path: Path, capsys) -> None:
+    """``--features`` fits the model on what ``--json`` wrote, fitting no frame: it flags the bad
+    estimates it is asked to and predicts each folder by the others; a bad file is one line."""
     flag = load("reliable_flag")
-    rows = {"add": [0.005, 0.005, 0.2, 0.2], "iou": [0.95, 0.85, 0.95, 0.85], "edge_distance": [1.0, 1.0, 1.5, 1.0],
-            "support": [0.5] * 4, "spread": [5.0] * 4, "inside": [1.0] * 4, "depth_per_pixel": [10.0] * 4}  # fmt: skip
-    features = {k: np.array(v) for k, v in rows.items()}
-    assert flag.flag(features, flag.SHIPPED).tolist() == [False, True, True, True]
-    saved = tmp_path / "features.json"
-    saved.write_text(json.dumps({"frames": {"features": rows}, "all": {"features": rows}}))
-    assert flag.main(["--features", str(saved), "--recall", "1"]) == 0
+    rng = np.random.default_rng(0)
+
+    def folder(n: int) -> dict[str, list]:
+        edge = rng.uniform(0.3, 1.5, n)
+        add = np.where(edge > 1.0, 0.1, 0.005)  # off where the outline is off the edges
+        fixed = {
+            "support": [0.6] * n,
+            "spread": [2.0] * n,
+            "inside": [1.0] * n,
+            "depth_per_pixel": [10.0] * n,
+            "inner_support": [0.6] * n,
+        }
+        return {"add": add.tolist(), "iou": rng.uniform(0.8, 0.95, n).tolist(), "edge_distance": edge.tolist(), **fixed}
+
+    saved = [tmp_path / "a.json", tmp_path / "b.json"]
+    for path in saved:
+        path.write_text(json.dumps({"frames": {"features": folder(60)}, "all": {"features": folder(2)}}))
+    model = flag.fit_model({k: np.array(v) for k, v in folder(200).items()}, 0.9)
+    assert model.weights["edge_distance"] > 0 and abs(model.weights["edge_distance"]) > abs(model.weights["iou"])
+    assert flag.main(["--features", *map(str, saved), "--recall", "1"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("4 frames, 2 with ADD > 30 mm") and "the flag as shipped" in out
-    assert "recall 100.0 %, false alarms 50.0 %" in out  # the shipped rule on them
+    assert out.startswith("120 frames,") and "FLAG_MODEL = DoubtModel(" in out and "the flag as shipped" in out
+    assert "recall 100.0 %" in out and "by a model fitted on the others" in out and f"{saved[1]}:frames" in out
     assert flag.main(["--features", str(tmp_path / "missing.json")]) == 2
     assert "--features" in capsys.readouterr().err
 

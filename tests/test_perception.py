@@ -30,7 +30,8 @@ from monose3.perception.from_pose import TRACK_ITERATIONS, refine_from, track_po
 from monose3.perception.hypotheses import pnp_hypotheses, sphere_hypotheses
 from monose3.perception.parser import decode_keypoints, keypoint_loss, mask_loss, pixel_to_cell
 from monose3.perception.reliability import (
-    FLAG_LIMITS,
+    FLAG_MODEL,
+    MAX_DEPTH_PER_PIXEL_MM,
     SECOND_LOOK_LIMITS,
     depth_per_pixel_mm,
     fit_doubts,
@@ -330,7 +331,7 @@ def test_a_doubtful_fit_takes_a_second_look_and_keeps_the_better(parser, rendere
     joints = monose3.load_joints(SAMPLE / "joints.json", models["panda"])
     args = (parser, renderers["panda"], models["panda"], blurred, K, joints)
     first = fit_pose(*args, second_look=False)
-    assert first.doubts() and "second look" not in first.timings
+    assert fit_reasons(first) and "second look" not in first.timings
     fit = fit_pose(*args)
     assert "second look" in fit.timings and fit.score >= first.score
 
@@ -402,12 +403,14 @@ def test_a_lost_track_is_found_again(parser, renderers, models, sample):
     fit = fit_pose(*args)
     start = _moved(fit.pose, 30, 15)
     found = track_pose(*args, start)
-    assert _add(models["panda"], joints, found.pose, fit.pose) < 0.01 and not found.doubts()
+    assert _add(models["panda"], joints, found.pose, fit.pose) < 0.01
+    assert not fit_doubts(found, models["panda"], joints, K, image.shape)
     view = view_around(parser, models["panda"], image, K, joints, start)
     kp = models["panda"].keypoints(joints[None])[0]
     alone = refine_coarse_to_fine(renderers["panda"], joints, start[None], view, kp, *TRACK_ITERATIONS)
     lost = best_fit(renderers["panda"], joints, alone, view, kp)
-    assert _add(models["panda"], joints, lost.pose, fit.pose) > 0.1 and lost.doubts()
+    assert _add(models["panda"], joints, lost.pose, fit.pose) > 0.1
+    assert fit_doubts(lost, models["panda"], joints, K, image.shape)
 
 
 def test_no_robot_in_the_image_is_not_a_pose(sample, tmp_path, capsys):
@@ -459,38 +462,55 @@ def test_a_good_fit_is_reliable_and_says_what_it_read(sample):
     assert result.overlay_label == result.confidence_text
 
 
-def test_fit_doubts_name_each_failed_check(sample):
+def test_the_second_look_is_triggered_by_each_number_past_its_limit(sample):
     view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), sample[1], np.array([0.0, 0, 4, 4]))
     fit = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None], edge_support=0.8, edge_distance_px=0.5)
-    assert fit.doubts() == []
+    assert fit_reasons(fit) == []
     doubted = Fit(np.eye(4), 0.45, 1.0, 0.4, view, np.eye(4)[None], edge_support=0.1, edge_distance_px=1.3,
                   spread_mm=45.0)  # fmt: skip
-    reasons = doubted.doubts()
+    reasons = fit_reasons(doubted, SECOND_LOOK_LIMITS)
     assert len(reasons) == 4 and "IoU 0.45 < 0.5" in reasons[0] and "1.30 px off the image's edges" in reasons[1]
     assert reasons[2] == "10 % of the outline on the image's edges < 20 %"
-    assert reasons[3] == f"restarts in depth ended 45 mm apart > {FLAG_LIMITS.spread_mm:g} mm"
+    assert reasons[3] == f"restarts in depth ended 45 mm apart > {SECOND_LOOK_LIMITS.spread_mm:g} mm"
     no_edges = Fit(np.eye(4), 0.95, 1.0, 0.9, view, np.eye(4)[None])  # a flat image: nothing confirms the outline
-    assert no_edges.doubts() == ["no image edge along the outline"]
-    assert not_found(view).doubts() == ["the robot was not found"]
+    assert fit_reasons(no_edges) == ["no image edge along the outline"]
+    assert fit_reasons(not_found(view)) == ["the robot was not found"]
 
 
-def test_a_close_silhouette_may_lie_further_off_the_image_edges_and_the_second_look_is_more_eager(sample):
-    """The outline's distance to the image's edges counts from 0.8 px where the silhouette fits the
-    mask by less than 0.9 IoU, from 1.2 px where it fits closer; the second look's trigger keeps
-    0.8 px everywhere, and a restarts' spread the flag lets pass (20-25 mm) still triggers it."""
-    view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), sample[1], np.array([0.0, 0, 4, 4]))
+def _numbers(**changed: float) -> dict[str, float]:
+    """A good fit's numbers (the flag model's typical ones), some changed."""
+    return {**FLAG_MODEL.typical, **changed}
 
-    def fit(iou: float, edge_px: float, spread_mm: float = 0.0) -> Fit:
-        return Fit(np.eye(4), iou, 1.0, iou, view, np.eye(4)[None], edge_support=0.8, edge_distance_px=edge_px,
-                   spread_mm=spread_mm)  # fmt: skip
 
-    off = "outline {:.2f} px off the image's edges > {:g}"
-    assert fit_reasons(fit(0.95, 1.0)) == [] and fit_reasons(fit(0.85, 1.0)) == [off.format(1.0, 0.8)]
-    assert fit_reasons(fit(0.95, 1.3)) == [off.format(1.3, 1.2)]
-    assert fit_reasons(fit(0.95, 1.0), SECOND_LOOK_LIMITS) == [off.format(1.0, 0.8)]
-    assert fit_reasons(fit(0.95, 0.5, spread_mm=22.0)) == []
-    spread = fit_reasons(fit(0.95, 0.5, spread_mm=22.0), SECOND_LOOK_LIMITS)
-    assert spread == ["restarts in depth ended 22 mm apart > 20 mm"]
+def test_the_flag_weighs_the_fits_numbers_together():
+    """A typical good fit is trusted; one number far off raises the odds past the flag's, and the
+    words name it; two numbers each a little off, that alone are outweighed by the good others,
+    are doubted together."""
+    assert not FLAG_MODEL.doubted(_numbers()) and FLAG_MODEL.causes(_numbers()) == []
+    for name, value in (("edge_distance", 2.0), ("spread", 300.0)):
+        assert FLAG_MODEL.doubted(_numbers(**{name: value})) and FLAG_MODEL.causes(_numbers(**{name: value}))[0] == name
+    assert not FLAG_MODEL.doubted(_numbers(inner_support=0.3)) and not FLAG_MODEL.doubted(_numbers(edge_distance=1.0))
+    assert FLAG_MODEL.doubted(_numbers(inner_support=0.3, edge_distance=1.0))
+    many = {k: np.array([v, v, v]) for k, v in _numbers().items()}
+    many["edge_distance"], many["iou"] = np.array([0.5, 2.0, 0.5]), np.array([0.9, 0.9, 0.4])
+    assert FLAG_MODEL.doubted(many).tolist() == [False, True, True]  # elementwise; an IoU of 0.4 is a sure doubt
+
+
+def test_fit_doubts_say_why_in_words(panda, sample):
+    """The model's odds with the numbers that raised them most; the sure doubts in their own words."""
+    joints, K = np.zeros(len(panda.joint_names)), sample[1]
+    view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), K, np.array([0.0, 0, 4, 4]))
+    centre = panda.centroid(panda.surface_points(joints[None])[0])
+    pose = make_pose(np.eye(3), np.array([0.0, 0.0, 1.5]) - centre)
+    good = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8, edge_distance_px=0.5)
+    assert fit_doubts(good, panda, joints, K, (480, 640)) == []
+    off = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8, edge_distance_px=2.5)
+    [reason] = fit_doubts(off, panda, joints, K, (480, 640))
+    assert "odds of an error over 30 mm" in reason
+    assert reason.endswith("mostly for its outline 2.50 px off the image's edges")
+    flat = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8)
+    assert fit_doubts(flat, panda, joints, K, (480, 640))[0] == "no image edge along the outline"
+    assert fit_doubts(not_found(view), panda, joints, K, (480, 640)) == ["the robot was not found"]
 
 
 def test_the_depth_per_pixel_is_the_depth_that_changes_the_robots_image_size_by_a_pixel(panda, sample):
@@ -518,7 +538,7 @@ def test_a_robot_too_small_for_its_distance_is_doubted(panda, sample):
     joints, K = np.zeros(len(panda.joint_names)), sample[1]
     view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), K, np.array([0.0, 0, 4, 4]))
     centre = panda.centroid(panda.surface_points(joints[None])[0])
-    for z, doubted in ((1.5, False), (6.0, True)):
+    for z, doubted in ((1.5, False), (7.0, True)):
         pose = make_pose(np.eye(3), np.array([0.0, 0.0, z]) - centre)
         fit = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8, edge_distance_px=0.5)
         reasons = fit_doubts(fit, panda, joints, K, (480, 640))
@@ -526,7 +546,7 @@ def test_a_robot_too_small_for_its_distance_is_doubted(panda, sample):
         if doubted:
             depth_mm = depth_per_pixel_mm(panda, pose, joints, K)
             assert reasons == [f"a pixel of the robot's size in the image is {depth_mm:.0f} mm of depth > "
-                               f"{FLAG_LIMITS.depth_per_pixel_mm:g} mm: "
+                               f"{MAX_DEPTH_PER_PIXEL_MM:g} mm: "
                                "too small to fix its distance"]  # fmt: skip
 
 

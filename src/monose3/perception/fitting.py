@@ -48,7 +48,7 @@ The restarts start from the refined hypothesis with the best final fit (IoU, key
 how much of the outline and of the inner edges the image's edges support), and the reported
 pose is the restart that fits best by the same score (of both fits' restarts, after a second
 look); the IoU is the confidence, and the ``reliable`` flag reads the outline's distance to the
-image's edges and the restarts' spread too (:meth:`Fit.doubts`; ``reliability.py``).
+image's edges and the restarts' spread too (``reliability.fit_doubts``).
 """
 
 from __future__ import annotations
@@ -129,13 +129,9 @@ class Fit:
     edge_support: float = 0.0  # share of the pose's outline on the image's own edges, [0, 1]
     edge_distance_px: float = math.inf  # RMS distance of the outline to the image's edges, view pixels
     spread_mm: float = 0.0  # mean keypoint distance of the other candidates (the other restart) to the pose
+    inner_support: float = 0.0  # how well the render's inner edges lie on the image's, [0, 1]
     found: bool = True
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
-
-    def doubts(self) -> list[str]:
-        """Why the fit is not to be trusted, in words, as the ``reliable`` flag reads its numbers
-        (:func:`~monose3.perception.reliability.fit_reasons`; empty: it is, as far as the fit can tell)."""
-        return fit_reasons(self)
 
 
 def keypoint_distances(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:
@@ -352,7 +348,8 @@ def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, vie
     order = np.argsort(-scores)
     best = order[0]
     fit = Fit(poses[best], float(ious[best]), float(errors[best]), float(scores[best]), view, poses[order],
-              edge_support=float(edges[best, 0]), edge_distance_px=float(edges[best, 1]))  # fmt: skip
+              edge_support=float(edges[best, 0]), edge_distance_px=float(edges[best, 1]),
+              inner_support=float(inner[best]))  # fmt: skip
     cam = transform_points(poses[order], kp_base)
     fit.spread_mm = float(1000 * np.linalg.norm(cam[1:] - cam[:1], axis=-1).mean()) if len(poses) > 1 else 0.0
     return fit
