@@ -57,6 +57,8 @@ from monose3.perception.reliability import BAD_MM, NUMBERS, DoubtModel
 from monose3.report.metrics import add_per_frame
 
 SHIPPED = reliability.FLAG_MODEL
+# the presets of reliability.py that choose() fits, by the numbers they read
+MODELS = {"FLAG_MODEL": NUMBERS, "FLAG_MODEL_WITHOUT_INNER": tuple(k for k in NUMBERS if k != "inner_support")}
 L2 = 1e-3  # ridge on the standardised inputs: keeps the weights finite where the classes separate
 
 
@@ -74,16 +76,17 @@ def frame_features(estimator, frames, name: str) -> list[dict]:
     return rows
 
 
-def fit_model(f: dict[str, np.ndarray], recall_goal: float) -> DoubtModel:
-    """The logistic model of ADD > :data:`BAD_MM` fitted on the frames' features ``f`` (L-BFGS
-    on standardised inputs, ridge :data:`L2`), flagging from the odds that catch ``recall_goal``
-    of the bad estimates there; ``typical``: the good fits' medians."""
+def fit_model(f: dict[str, np.ndarray], recall_goal: float, numbers: tuple[str, ...] = NUMBERS) -> DoubtModel:
+    """The logistic model of ADD > :data:`BAD_MM` on ``numbers`` fitted on the frames' features
+    ``f`` (L-BFGS on standardised inputs, ridge :data:`L2`), flagging from the odds that catch
+    ``recall_goal`` of the bad estimates there; ``typical``: the good fits' medians (of all
+    :data:`NUMBERS`: the model's words compare the fit with it)."""
     bad = f["add"] > BAD_MM / 1000
     inputs = reliability.model_inputs(f)
-    x = np.stack([inputs[k] for k in NUMBERS], 1)
+    x = np.stack([inputs[k] for k in numbers], 1)
     mean, std = x.mean(0), x.std(0) + 1e-9
     xs, y = torch.tensor((x - mean) / std), torch.tensor(bad, dtype=torch.float64)
-    w = torch.zeros(len(NUMBERS), dtype=torch.float64, requires_grad=True)
+    w = torch.zeros(len(numbers), dtype=torch.float64, requires_grad=True)
     b = torch.zeros((), dtype=torch.float64, requires_grad=True)
     opt = torch.optim.LBFGS([w, b], max_iter=500, line_search_fn="strong_wolfe")
 
@@ -95,7 +98,7 @@ def fit_model(f: dict[str, np.ndarray], recall_goal: float) -> DoubtModel:
 
     opt.step(loss)
     weights = w.detach().numpy() / std
-    model = DoubtModel(weights=dict(zip(NUMBERS, np.round(weights, 4).tolist(), strict=True)),
+    model = DoubtModel(weights=dict(zip(numbers, np.round(weights, 4).tolist(), strict=True)),
                        bias=round(b.item() - float(weights @ mean), 4), threshold=0.5,
                        typical={k: round(float(np.median(f[k][~bad])), 3) for k in NUMBERS})  # fmt: skip
     # the odds that, with the sure doubts, flag recall_goal of the bad estimates
@@ -174,28 +177,32 @@ def saved_features(paths: list[str]) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
-def choose(per_folder: dict[str, dict[str, np.ndarray]], recall_goal: float) -> DoubtModel:
-    """Fit the flag's model on all the folders' frames for ``recall_goal``; print it, its figures
-    and the shipped model's there, and, with several folders, each folder's figures under a
-    model fitted on the others."""
+def choose(per_folder: dict[str, dict[str, np.ndarray]], recall_goal: float) -> None:
+    """Fit the flag's models (with and without the inner edges' support) on all the folders'
+    frames for ``recall_goal``; print each, its figures and the shipped one's there, and, with
+    several folders, each folder's figures under a model fitted on the others."""
     f = pooled(list(per_folder.values()))
-    model = fit_model(f, recall_goal)
-    caught, n_bad, alarms, n_good = counts(f, model)
-    print(f"{n_bad + n_good} frames, {n_bad} with ADD > {BAD_MM:g} mm; for {100 * recall_goal:g} % recall:")
-    print(f"  FLAG_MODEL = {model!r}")
-    print(f"  there: recall {share_text(caught, n_bad)}, false alarms {share_text(alarms, n_good)}")
-    caught, n_bad, alarms, n_good = counts(f, SHIPPED)
-    print(f"the flag as shipped there: recall {share_text(caught, n_bad)}, false alarms {share_text(alarms, n_good)}")
-    if len(per_folder) > 1:
-        print("each folder by a model fitted on the others:")
-        total = np.zeros(4, int)
-        for name, held in per_folder.items():
-            others = fit_model(pooled([g for other, g in per_folder.items() if other != name]), recall_goal)
-            figures = counts(held, others)
-            total += figures
-            print(f"  {name}: recall {share_text(*figures[:2])}, false alarms {share_text(*figures[2:])}")
-        print(f"  all: recall {share_text(*total[:2])}, false alarms {share_text(*total[2:])}")
-    return model
+    print(f"{len(f['add'])} frames, {(f['add'] > BAD_MM / 1000).sum()} with ADD > {BAD_MM:g} mm; "
+          f"for {100 * recall_goal:g} % recall:")  # fmt: skip
+    for name, numbers in MODELS.items():
+        model, shipped = fit_model(f, recall_goal, numbers), getattr(reliability, name)
+        print(f"{name} = {model!r}")
+        print(f"  there: {figures_text(counts(f, model))}")
+        print(f"  as shipped there: {figures_text(counts(f, shipped))}")
+        if len(per_folder) > 1:
+            print("  each folder by a model fitted on the others:")
+            total = np.zeros(4, int)
+            for folder, held in per_folder.items():
+                others = pooled([g for other, g in per_folder.items() if other != folder])
+                figures = counts(held, fit_model(others, recall_goal, numbers))
+                total += figures
+                print(f"    {folder}: {figures_text(figures)}")
+            print(f"    all: {figures_text(tuple(total))}")
+
+
+def figures_text(figures: tuple[int, int, int, int]) -> str:
+    caught, n_bad, alarms, n_good = figures
+    return f"recall {share_text(caught, n_bad)}, false alarms {share_text(alarms, n_good)}"
 
 
 def _infinite_where_null(values: list) -> np.ndarray:

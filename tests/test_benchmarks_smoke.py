@@ -241,7 +241,7 @@ def test_reliable_flag_small(tiny_dream: Path, capsys, keep_threads: None) -> No
     flag = load("reliable_flag")
     assert flag.main(["--data", str(tiny_dream), "--recall", "1"]) == 0
     out = capsys.readouterr().out
-    assert "frames" in out and "FLAG_MODEL = " in out and "the flag as shipped" in out
+    assert "frames" in out and "FLAG_MODEL = " in out and "as shipped there" in out
 
 
 @pytest.mark.slow
@@ -315,8 +315,9 @@ def test_reliable_flag_fits_its_model_on_saved_features(tmp_path: Path, capsys) 
     assert model.weights["edge_distance"] > 0 and abs(model.weights["edge_distance"]) > abs(model.weights["iou"])
     assert flag.main(["--features", *map(str, saved), "--recall", "1"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("120 frames,") and "FLAG_MODEL = DoubtModel(" in out and "the flag as shipped" in out
+    assert out.startswith("120 frames,") and "FLAG_MODEL = DoubtModel(" in out and "as shipped there" in out
     assert "recall 100.0 %" in out and "by a model fitted on the others" in out and f"{saved[1]}:frames" in out
+    assert "FLAG_MODEL_WITHOUT_INNER = DoubtModel(" in out
     assert flag.main(["--features", str(tmp_path / "missing.json")]) == 2
     assert "--features" in capsys.readouterr().err
 

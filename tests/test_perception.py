@@ -497,7 +497,8 @@ def test_the_flag_weighs_the_fits_numbers_together():
 
 
 def test_fit_doubts_say_why_in_words(panda, sample):
-    """The model's odds with the numbers that raised them most; the sure doubts in their own words."""
+    """The model's odds with the numbers that raised them most; the sure doubts in their own words;
+    a fit without the inner edges' support judged by the model fitted without it."""
     joints, K = np.zeros(len(panda.joint_names)), sample[1]
     view = ViewEvidence(torch.zeros(4, 4), np.zeros((7, 2)), np.ones(7), K, np.array([0.0, 0, 4, 4]))
     centre = panda.centroid(panda.surface_points(joints[None])[0])
@@ -508,6 +509,12 @@ def test_fit_doubts_say_why_in_words(panda, sample):
     [reason] = fit_doubts(off, panda, joints, K, (480, 640))
     assert "odds of an error over 30 mm" in reason
     assert reason.endswith("mostly for its outline 2.50 px off the image's edges")
+    inner = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8, edge_distance_px=1.0, inner_support=0.2)
+    [reason] = fit_doubts(inner, panda, joints, K, (480, 640))
+    assert "inner edges 20 % on the image's edges" in reason
+    # a fit that did not measure its inner edges (tracking's) is judged by the model without them
+    unmeasured = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8, edge_distance_px=1.0)
+    assert fit_doubts(unmeasured, panda, joints, K, (480, 640)) == []
     flat = Fit(pose, 0.95, 1.0, 0.9, view, pose[None], edge_support=0.8)
     assert fit_doubts(flat, panda, joints, K, (480, 640))[0] == "no image edge along the outline"
     assert fit_doubts(not_found(view), panda, joints, K, (480, 640)) == ["the robot was not found"]

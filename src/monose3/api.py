@@ -90,11 +90,13 @@ class PoseResult:
 
     @property
     def reliable(self) -> bool | None:
-        """ "fit": whether the fit can be trusted: the silhouette fits the mask, its outline lies
-        on the image's edges, its restarts in depth agree, the robot is large enough in the image
-        to fix its depth, and most of it is in the image (``perception.reliability.FLAG_LIMITS``;
-        :attr:`doubts` says which failed). The paper's samplers: whether the chains agree within
-        ``UNRELIABLE_MM``; None with one chain (nothing to compare)."""
+        """ "fit": whether the fit can be trusted: the odds that it is off by more than 30 mm, by
+        a model of the fit's numbers (how the silhouette fits the mask, how its outline and inner
+        edges lie on the image's edges, how its restarts in depth agree, how large the robot is
+        in the image for its distance), are low, and most of the robot is in the image
+        (``perception.reliability.FLAG_MODEL``; :attr:`doubts` says why not). The paper's
+        samplers: whether the chains agree within ``UNRELIABLE_MM``; None with one chain
+        (nothing to compare)."""
         if self.estimate.reliable is not None:
             return bool(self.estimate.reliable[0])
         if self.chains < 2 or not np.isfinite(self.spread_mm):

@@ -129,7 +129,7 @@ class Fit:
     edge_support: float = 0.0  # share of the pose's outline on the image's own edges, [0, 1]
     edge_distance_px: float = math.inf  # RMS distance of the outline to the image's edges, view pixels
     spread_mm: float = 0.0  # mean keypoint distance of the other candidates (the other restart) to the pose
-    inner_support: float = 0.0  # how well the render's inner edges lie on the image's, [0, 1]
+    inner_support: float = math.nan  # how well the render's inner edges lie on the image's, [0, 1]; NaN: not measured
     found: bool = True
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
 
@@ -349,7 +349,7 @@ def best_fit(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, vie
     best = order[0]
     fit = Fit(poses[best], float(ious[best]), float(errors[best]), float(scores[best]), view, poses[order],
               edge_support=float(edges[best, 0]), edge_distance_px=float(edges[best, 1]),
-              inner_support=float(inner[best]))  # fmt: skip
+              inner_support=float(inner[best]) if rendered is not None else math.nan)  # fmt: skip
     cam = transform_points(poses[order], kp_base)
     fit.spread_mm = float(1000 * np.linalg.norm(cam[1:] - cam[:1], axis=-1).mean()) if len(poses) > 1 else 0.0
     return fit

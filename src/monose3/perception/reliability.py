@@ -1,9 +1,9 @@
 """The ``reliable`` flag of the default pipeline and the second look's trigger.
 
 The flag (:func:`fit_doubts`) reads a fit's numbers (:func:`fit_numbers`: its silhouette's IoU,
-how its outline lies on the image's edges, its restarts' spread, how much of the robot is in
-the image and how much depth a pixel of its size stands for) through a logistic model of the
-odds that the fit is off by more than 30 mm (:class:`DoubtModel`). The second look's trigger
+how its outline and its inner edges lie on the image's edges, its restarts' spread, how much of
+the robot is in the image and how much depth a pixel of its size stands for) through a logistic
+model of the odds that the fit is off by more than 30 mm (:class:`DoubtModel`). The second look's trigger
 (:func:`fit_reasons`) is thresholds on the fit's own numbers (:class:`Limits`)."""
 
 from __future__ import annotations
@@ -119,13 +119,23 @@ def sure_doubts(numbers: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
 # Fitted on 1,200 hard frames of their own (seeds 7007, 9009, 11011, 13013) for 93 % recall
 # (benchmarks/reliable_flag.py --features docs/results/reliable_flag_features.json): each seed's
 # frames predicted by a model fitted on the other three, 93.0 % of the bad estimates are flagged
-# with 6.8 % false alarms, where threshold rules chosen alike flag 90.7 % with 9.0 % and the model
-# without the inner edges 91.6 % with 8.8 % (docs/PIPELINE.md, stage 8).
+# with 6.8 % false alarms; without the inner edges' support, 91.6 % with 8.8 % (and threshold
+# rules chosen alike on the 2,020 frames of seeds 3003-14014, 90.7 % with 9.0 %; docs/PIPELINE.md,
+# stage 8). FLAG_MODEL_WITHOUT_INNER, fitted alike without it, judges fits that did not measure
+# it (tracking's: from_pose.track_pose leaves the inner edges out).
 FLAG_MODEL = DoubtModel(
     weights={"iou": -6.4518, "edge_distance": 8.0787, "support": 3.8392, "spread": 1.0467, "inside": -5.0635,
              "depth_per_pixel": 0.0014, "inner_support": -6.8285},
     bias=0.5547,
     threshold=0.2035,
+    typical={"iou": 0.904, "edge_distance": 0.636, "support": 0.664, "spread": 2.177, "inside": 1.0,
+             "depth_per_pixel": 11.048, "inner_support": 0.614},
+)  # fmt: skip
+FLAG_MODEL_WITHOUT_INNER = DoubtModel(
+    weights={"iou": -7.7709, "edge_distance": 9.2007, "support": 0.5424, "spread": 1.0357, "inside": -4.5924,
+             "depth_per_pixel": 0.0043},
+    bias=-1.2537,
+    threshold=0.1415,
     typical={"iou": 0.904, "edge_distance": 0.636, "support": 0.664, "spread": 2.177, "inside": 1.0,
              "depth_per_pixel": 11.048, "inner_support": 0.614},
 )  # fmt: skip
@@ -208,13 +218,14 @@ def _shown(name: str, value: float) -> float:
     return 100 * value if name in ("support", "inside", "inner_support") else value  # shares in words are percentages
 
 
-def fit_doubts(fit: Fit, robot: RobotModel, joints: np.ndarray, K: np.ndarray, image_shape,
-               model: DoubtModel = FLAG_MODEL) -> list[str]:  # fmt: skip
-    """Why the fit is not to be trusted, in words, as ``model`` flags it (:meth:`DoubtModel.doubted`;
-    empty: it is, as far as its numbers tell)."""
+def fit_doubts(fit: Fit, robot: RobotModel, joints: np.ndarray, K: np.ndarray, image_shape) -> list[str]:
+    """Why the fit is not to be trusted, in words, as :data:`FLAG_MODEL` flags it
+    (:meth:`DoubtModel.doubted`; :data:`FLAG_MODEL_WITHOUT_INNER` where the fit did not measure
+    its inner edges; empty: it is, as far as its numbers tell)."""
     if not fit.found:
         return ["the robot was not found"]
     numbers = fit_numbers(fit, robot, joints, K, image_shape)
+    model = FLAG_MODEL if math.isfinite(fit.inner_support) else FLAG_MODEL_WITHOUT_INNER
     sure = sure_doubts(numbers)
     reasons = []
     if sure["iou"]:
