@@ -47,8 +47,9 @@ Not in the paper; the stages EasyHeC and CtRNet use for a robot whose joints are
 The restarts start from the refined hypothesis with the best final fit (IoU, keypoint residual,
 how much of the outline and of the inner edges the image's edges support), and the reported
 pose is the restart that fits best by the same score (of both fits' restarts, after a second
-look); the IoU is the confidence, and the ``reliable`` flag reads the outline's distance to the
-image's edges and the restarts' spread too (``reliability.fit_doubts``).
+look); the IoU is the confidence, and the ``reliable`` flag reads it with the fit's other
+numbers (how its outline and inner edges lie on the image's edges, the restarts' spread;
+``reliability.fit_doubts``).
 """
 
 from __future__ import annotations
