@@ -291,8 +291,9 @@ def test_wilson_interval_holds_the_share_and_narrows_with_frames() -> None:
 
 
 def test_reliable_flag_fits_its_model_on_saved_features(tmp_path: Path, capsys) -> None:
-    """``--features`` fits the model on what ``--json`` wrote, fitting no frame: it flags the bad
-    estimates it is asked to and predicts each folder by the others; a bad file is one line."""
+    """``--features`` fits the model on what ``--json`` wrote (a robot not found among them),
+    fitting no frame: it flags the bad estimates it is asked to and predicts each folder by the
+    others; a bad file is one line."""
     flag = load("reliable_flag")
     rng = np.random.default_rng(0)
 
@@ -310,7 +311,13 @@ def test_reliable_flag_fits_its_model_on_saved_features(tmp_path: Path, capsys) 
 
     saved = [tmp_path / "a.json", tmp_path / "b.json"]
     for path in saved:
-        path.write_text(json.dumps({"frames": {"features": folder(60)}, "all": {"features": folder(2)}}))
+        frames = folder(60)
+        # a robot not found, as --json writes it (infinite and unmeasured numbers null)
+        lost = {"add": None, "iou": 0.0, "edge_distance": None, "support": 0.0, "spread": 0.0, "inside": 0.0,
+                "depth_per_pixel": None, "inner_support": None}  # fmt: skip
+        for key, value in lost.items():
+            frames[key][0] = value
+        path.write_text(json.dumps({"frames": {"features": frames}, "all": {"features": folder(2)}}))
     model = flag.fit_model({k: np.array(v) for k, v in folder(200).items()}, 0.9)
     assert model.weights["edge_distance"] > 0 and abs(model.weights["edge_distance"]) > abs(model.weights["iou"])
     assert flag.main(["--features", *map(str, saved), "--recall", "1"]) == 0

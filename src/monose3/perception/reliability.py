@@ -58,13 +58,15 @@ WORSE = {"iou": -1, "edge_distance": 1, "support": -1, "spread": 1, "inside": -1
 def model_inputs(numbers: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
     """The flag model's inputs from a fit's numbers (:func:`fit_numbers`; scalars, or arrays of
     many fits): those that grow without bound capped (an outline far from any edge, a robot too
-    far to fix), the restarts' spread on a log scale (it spans 0.1 mm to metres)."""
+    far to fix), the restarts' spread on a log scale (it spans 0.1 mm to metres), a support not
+    measured (a robot not found; saved features write it null) as none."""
     x = {k: np.asarray(numbers[k], float) for k in NUMBERS}
     capped = {
         "edge_distance": np.minimum(x["edge_distance"], 5.0),
         "depth_per_pixel": np.minimum(x["depth_per_pixel"], 200.0),
     }
-    return {**x, **capped, "spread": np.log1p(np.minimum(x["spread"], 500.0))}
+    unmeasured_as_none = {k: np.nan_to_num(x[k], nan=0.0, posinf=0.0) for k in ("support", "inner_support")}
+    return {**x, **capped, **unmeasured_as_none, "spread": np.log1p(np.minimum(x["spread"], 500.0))}
 
 
 @dataclass(frozen=True)
