@@ -109,7 +109,7 @@ def fit_model(f: dict[str, np.ndarray], recall_goal: float, numbers: tuple[str, 
                        bias=round(b.item() - float(weights @ mean), 4), threshold=0.5,
                        typical={k: round(float(np.median(f[k][~bad])), 3) for k in NUMBERS})  # fmt: skip
     # the odds that, with the sure doubts, flag recall_goal of the bad estimates
-    unsure = ~np.logical_or.reduce(list(reliability.sure_doubts(f).values()))
+    unsure = ~reliability.surely_doubted(f)
     odds = np.sort(model.odds(f)[bad & unsure])[::-1]
     needed = math.ceil(recall_goal * bad.sum()) - int((bad & ~unsure).sum())
     threshold = float(odds[min(needed, len(odds)) - 1]) if needed > 0 and len(odds) else 1.0

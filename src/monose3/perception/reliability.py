@@ -93,7 +93,7 @@ class DoubtModel:
 
     def doubted(self, numbers: Mapping[str, ArrayLike]) -> np.ndarray:
         """Unreliable (elementwise): a :func:`sure_doubts`, or :meth:`odds` at the threshold or more."""
-        return np.logical_or.reduce(list(sure_doubts(numbers).values())) | (self.odds(numbers) >= self.threshold)
+        return surely_doubted(numbers) | (self.odds(numbers) >= self.threshold)
 
     def causes(self, numbers: Mapping[str, float], most: int = 2) -> list[str]:
         """The numbers (names) worse than a typical good fit's that raise the odds most above its,
@@ -116,6 +116,11 @@ def sure_doubts(numbers: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
     return {"iou": x["iou"] < MIN_IOU, "edge_distance": ~np.isfinite(x["edge_distance"]),
             "inside": x["inside"] < MIN_INSIDE,
             "depth_per_pixel": x["depth_per_pixel"] > MAX_DEPTH_PER_PIXEL_MM}  # fmt: skip
+
+
+def surely_doubted(numbers: Mapping[str, ArrayLike]) -> np.ndarray:
+    """Whether any of :func:`sure_doubts` holds (elementwise)."""
+    return np.logical_or.reduce(list(sure_doubts(numbers).values()))
 
 
 # Fitted on 1,200 hard frames of their own (seeds 7007, 9009, 11011, 13013) for 93 % recall
@@ -196,15 +201,6 @@ def fit_numbers(fit: Fit, robot: RobotModel, joints: np.ndarray, K: np.ndarray, 
             "inner_support": fit.inner_support}  # fmt: skip
 
 
-WORSE = {
-    "iou": -1,
-    "edge_distance": 1,
-    "support": -1,
-    "spread": 1,
-    "inside": -1,
-    "depth_per_pixel": 1,
-    "inner_support": -1,
-}  # the sign of a change that makes a fit worse, number by number
 NUMBER_WORDS = {
     "iou": "silhouette IoU {:.2f}",
     "edge_distance": "outline {:.2f} px off the image's edges",
