@@ -95,25 +95,35 @@ def _candidates(verts: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, size:
     lo_v = torch.minimum(torch.minimum(v[:, 0], v[:, 1]), v[:, 2]).ceil().clamp_min(0)
     hi_u = torch.maximum(torch.maximum(u[:, 0], u[:, 1]), u[:, 2]).floor().clamp_max(width - 1)
     hi_v = torch.maximum(torch.maximum(v[:, 0], v[:, 1]), v[:, 2]).floor().clamp_max(height - 1)
-    keep = (z > NEAR).all(1) & (hi_u >= lo_u) & (hi_v >= lo_v)
-    b_idx, f_idx = keep.nonzero(as_tuple=True)
-    uv_kept = torch.stack([u[b_idx, :, f_idx], v[b_idx, :, f_idx]], -1)  # [T, 3, 2]
-    area = _signed_area(uv_kept)
-    sure = area.abs() > 1e-6
+    # The doubled signed area (as _signed_area gives it), so that faces turned away are dropped
+    # before anything is gathered for them.
+    area = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0])
+    keep = (z > NEAR).all(1) & (hi_u >= lo_u) & (hi_v >= lo_v) & (area.abs() > 1e-6)
     if cullable is not None:
         # Clockwise on screen (y down) is facing away for outward-wound closed meshes.
-        sure &= (area < 0) | ~cullable[f_idx]
-    b_idx, f_idx, uv_kept, area = b_idx[sure], f_idx[sure], uv_kept[sure], area[sure]
-    lo = torch.stack([lo_u[b_idx, f_idx], lo_v[b_idx, f_idx]], -1)
-    hi = torch.stack([hi_u[b_idx, f_idx], hi_v[b_idx, f_idx]], -1)
+        keep &= (area < 0) | ~cullable
+    kept = keep.view(-1).nonzero(as_tuple=True)[0]
+    b_idx, f_idx = kept // faces.shape[0], kept % faces.shape[0]
+    u, v, z = (_gather_corners(x, b_idx, f_idx) for x in (u, v, z))  # [T, 3] each
+    uv_kept = torch.stack([u, v], -1)  # [T, 3, 2]
+    area, lo_u, lo_v, hi_u, hi_v = (x.view(-1).index_select(0, kept) for x in (area, lo_u, lo_v, hi_u, hi_v))
+    lo, hi = torch.stack([lo_u, lo_v], -1), torch.stack([hi_u, hi_v], -1)
     box_w = hi[:, 0] - lo[:, 0] + 1
     counts = (box_w * (hi[:, 1] - lo[:, 1] + 1)).long()
     # One row per triangle, gathered once per candidate pixel.
     slopes = _barycentric_slopes(uv_kept, area)
     at_corner = _barycentrics_at(uv_kept, lo, area)
-    table = torch.cat([at_corner, slopes[:, 0], slopes[:, 1], 1.0 / z[b_idx, :, f_idx], box_w[:, None]], 1)
+    table = torch.cat([at_corner, slopes[:, 0], slopes[:, 1], 1.0 / z, box_w[:, None]], 1)
     corner_pixel = (b_idx * height + lo[:, 1].long()) * width + lo[:, 0].long()
     return _Candidates(table, torch.stack([corner_pixel, b_idx * faces.shape[0] + f_idx], 1), counts)
+
+
+def _gather_corners(values: torch.Tensor, b_idx: torch.Tensor, f_idx: torch.Tensor) -> torch.Tensor:
+    """``values[b_idx, :, f_idx]`` (``[B, 3, F]`` -> ``[T, 3]``) by ``index_select``, many times
+    faster on the CPU than advanced indexing."""
+    at = b_idx * values[0].numel() + f_idx
+    flat = values.reshape(-1)
+    return torch.stack([flat.index_select(0, at + c * values.shape[2]) for c in range(3)], -1)
 
 
 def _in_chunks(candidates: _Candidates, fold) -> None:
@@ -165,26 +175,26 @@ def rasterize_coverage(
     return covered.view(batch, height, width)
 
 
-def _candidate_pixels(counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int):
-    """Each candidate pixel of the triangles: its triangle's row of ``table`` and ``ids``, its
-    screen barycentrics, and its flat pixel index. Small boxes are tested whole; in a larger one,
-    per row only the pixels between where the row enters and leaves the triangle
+def _candidate_pixels(counts: torch.Tensor, table: torch.Tensor, width: int):
+    """Each candidate pixel of the triangles: its triangle's index in ``table``, its column and
+    row in the triangle's box, and its screen barycentrics. Small boxes are tested whole; in a
+    larger one, per row only the pixels between where the row enters and leaves the triangle
     (:func:`_row_spans`): a box holds six times as many pixels as its triangle covers in the
-    fit's renders at 320x240, where finding the spans costs more than it saves in a small box."""
+    fit's renders at 320x240, where finding the spans costs more than it saves in a small box.
+    Only the barycentrics' columns of ``table`` are gathered per candidate: most are not covered."""
     small = counts <= SMALL_BOX
     boxed = torch.where(small, counts, 0)
     tri_small = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), boxed)
-    offset = torch.arange(len(tri_small), device=counts.device) - (boxed.cumsum(0) - boxed)[tri_small]
-    box_w = table[tri_small, 12].long()
+    offset = torch.arange(len(tri_small), device=counts.device) - (boxed.cumsum(0) - boxed).index_select(0, tri_small)
+    box_w = table[:, 12].long().index_select(0, tri_small)
     dy_small = offset // box_w
     tri_large, dy_large, dx_large = _spanned_pixels(counts, table, ~small)
     tri = torch.cat([tri_small, tri_large])
     dy = torch.cat([dy_small, dy_large])
     dx = torch.cat([offset - dy_small * box_w, dx_large])
-    row = table.index_select(0, tri)
+    row = table[:, :9].contiguous().index_select(0, tri)
     w = row[:, 0:3] + row[:, 3:6] * dx[:, None] + row[:, 6:9] * dy[:, None]  # screen barycentrics
-    tid = ids.index_select(0, tri)
-    return row, tid, w, tid[:, 0] + dy * width + dx
+    return tri, dx, dy, w
 
 
 def _spanned_pixels(counts: torch.Tensor, table: torch.Tensor, chosen: torch.Tensor):
@@ -193,11 +203,13 @@ def _spanned_pixels(counts: torch.Tensor, table: torch.Tensor, chosen: torch.Ten
     device = counts.device
     rows = torch.where(chosen, counts // table[:, 12].long(), 0)
     tri = torch.repeat_interleave(torch.arange(len(rows), device=device), rows)  # one per box row
-    dy = torch.arange(len(tri), device=device) - (rows.cumsum(0) - rows)[tri]
+    dy = torch.arange(len(tri), device=device) - (rows.cumsum(0) - rows).index_select(0, tri)
     start, span = _row_spans(table.index_select(0, tri), dy)
     pair = torch.repeat_interleave(torch.arange(len(span), device=device), span)
-    dx = start[pair] + torch.arange(len(pair), device=device) - (span.cumsum(0) - span)[pair]
-    return tri[pair], dy[pair], dx
+    # index_select throughout: several times faster on the CPU than indexing with a tensor
+    first = (span.cumsum(0) - span).index_select(0, pair)
+    dx = start.index_select(0, pair) + torch.arange(len(pair), device=device) - first
+    return tri.index_select(0, pair), dy.index_select(0, pair), dx
 
 
 def _row_spans(rows: torch.Tensor, dy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -209,8 +221,8 @@ def _row_spans(rows: torch.Tensor, dy: torch.Tensor) -> tuple[torch.Tensor, torc
     slope = rows[:, 3:6]
     crossing = (-_INSIDE_EPS - at_row) / slope  # column where each barycentric reaches the edge
     flat = slope.abs() < _FLAT_SLOPE  # an edge nearly along the row: bounds nothing here
-    lower = torch.where((slope > 0) & ~flat, crossing, -torch.inf).amax(1)
-    upper = torch.where((slope < 0) & ~flat, crossing, torch.inf).amin(1)
+    lower = _max3(torch.where((slope > 0) & ~flat, crossing, -torch.inf))
+    upper = -_max3(-torch.where((slope < 0) & ~flat, crossing, torch.inf))
     last = rows[:, 12] - 1
     start = (lower.ceil() - 1).clamp(0, None).minimum(last + 1)
     stop = (upper.floor() + 1).minimum(last)
@@ -221,21 +233,39 @@ def _scatter_chunk(
     zbuf: torch.Tensor, counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int
 ) -> None:
     """Test the candidate pixels of some triangles and fold the covered ones into ``zbuf``."""
-    row, tid, w, pixel = _candidate_pixels(counts, table, ids, width)
+    tri, dx, dy, w = _candidate_pixels(counts, table, width)
     inside = _covers(w).nonzero(as_tuple=True)[0]  # the depth of the covered ones only
-    w, inverse_z, tid, pixel = w[inside], row[inside, 9:12], tid[inside], pixel[inside]
-    w = w / w.sum(-1, keepdim=True)
-    depth = 1.0 / (w * inverse_z).sum(-1)  # perspective-correct z
+    tri, w, dx, dy = (x.index_select(0, inside) for x in (tri, w, dx, dy))
+    tid, inverse_z = ids.index_select(0, tri), table[:, 9:12].index_select(0, tri)
+    w = w / _sum3(w)[:, None]
+    depth = 1.0 / _sum3(w * inverse_z)  # perspective-correct z
     key = (depth / DEPTH_UNIT).long().clamp(0, (1 << 22) - 1) << _ID_BITS | tid[:, 1]
-    zbuf.scatter_reduce_(0, pixel, key, reduce="amin")
+    zbuf.scatter_reduce_(0, _pixels(tid[:, 0], dx, dy, width), key, reduce="amin")
 
 
 def _cover_chunk(
     covered: torch.Tensor, counts: torch.Tensor, table: torch.Tensor, ids: torch.Tensor, width: int
 ) -> None:
     """Test the candidate pixels of some triangles and mark the covered ones in ``covered``."""
-    _, _, w, pixel = _candidate_pixels(counts, table, ids, width)
-    covered[pixel[_covers(w)]] = True
+    tri, dx, dy, w = _candidate_pixels(counts, table, width)
+    inside = _covers(w).nonzero(as_tuple=True)[0]
+    tri, dx, dy = (x.index_select(0, inside) for x in (tri, dx, dy))
+    covered[_pixels(ids[:, 0].index_select(0, tri), dx, dy, width)] = True
+
+
+def _pixels(corner: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor, width: int) -> torch.Tensor:
+    """Flat pixel indices of the pixels ``dx``, ``dy`` into boxes whose top-left pixel is ``corner``."""
+    return corner + dy * width + dx
+
+
+def _sum3(x: torch.Tensor) -> torch.Tensor:
+    """``x.sum(-1)`` of ``[N, 3]`` (the same sums, in the same order): five times faster on the CPU."""
+    return x[:, 0] + x[:, 1] + x[:, 2]
+
+
+def _max3(x: torch.Tensor) -> torch.Tensor:
+    """``x.amax(-1)`` of ``[N, 3]``, several times faster on the CPU."""
+    return torch.maximum(torch.maximum(x[:, 0], x[:, 1]), x[:, 2])
 
 
 def _covers(barycentrics: torch.Tensor) -> torch.Tensor:
@@ -263,15 +293,16 @@ def _resolve(zbuf, verts, faces, K, batch, size, barycentrics: bool) -> Fragment
     depth = torch.zeros(batch * height * width, device=verts.device)
     pix = covered.nonzero(as_tuple=True)[0]
     if len(pix):
-        b, f = tri_id[pix] // faces.shape[0], tri_id[pix] % faces.shape[0]
+        ids = tri_id.index_select(0, pix)
+        b, f = ids // faces.shape[0], ids % faces.shape[0]
         tri = gather_vertices(verts, b, faces.index_select(0, f))  # [N, 3, 3]
-        uv = project(tri, K[b])
+        uv = project(tri, K.index_select(0, b))
         pixel = torch.stack([pix % width, (pix // width) % height], -1).float()
         w = _barycentrics_at(uv, pixel, _signed_area(uv)).clamp_min(0)
         persp = w / tri[..., 2]
-        norm = persp.sum(-1, keepdim=True)
+        norm = _sum3(persp)[:, None]
         if bary is not None:
-            bary[pix] = persp / norm
-        depth[pix] = 1.0 / norm[:, 0]
+            bary.index_copy_(0, pix, persp / norm)
+        depth.index_copy_(0, pix, 1.0 / norm[:, 0])
     bary = None if bary is None else bary.view(batch, height, width, 3)
     return Fragments(face=face, bary=bary, depth=depth.view(batch, height, width))

@@ -146,10 +146,11 @@ class RobotRenderer:
         normals None without ``normals``: only shading reads them, and they cost as much as the
         vertices)."""
         t = self._tensors(cam_links.device)
-        per_vertex = cam_links.index_select(1, t["vertex_link"])  # [B, V, 4, 4]; index_select: fast on CPU
-        rot = per_vertex[..., :3, :3]
-        verts = torch.einsum("bvij,vj->bvi", rot, t["verts"]) + per_vertex[..., :3, 3]
-        return verts, torch.einsum("bvij,vj->bvi", rot, t["normals"]) if normals else None
+        # [B, V, 3, 4]; index_select, and matmul rather than einsum: several times faster on the CPU
+        per_vertex = cam_links[:, :, :3].contiguous().index_select(1, t["vertex_link"])
+        rot = per_vertex[..., :3]
+        verts = (rot @ t["verts"][..., None])[..., 0] + per_vertex[..., 3]
+        return verts, (rot @ t["normals"][..., None])[..., 0] if normals else None
 
     def render(
         self,
@@ -239,7 +240,7 @@ class RobotRenderer:
     def unlit_colors(self, face: np.ndarray) -> np.ndarray:
         """``[..., 3]`` the mesh's own colour of each drawn ``face`` index (:attr:`RenderOutput.face`;
         black where -1): the robot as a render without light would show it."""
-        return self._palette[face]
+        return np.take(self._palette, face, axis=0)  # 4x faster than self._palette[face]
 
     def render_jobs(self, jobs: Sequence[RenderJob]) -> list[tuple[np.ndarray, np.ndarray]]:
         """Numpy convenience for per-image callers (overlays, files): ``(rgb [H, W, 3] uint8, mask [H, W])``
