@@ -184,6 +184,12 @@ def saved_features(paths: list[str]) -> dict[str, dict[str, np.ndarray]]:
             for folder, result in data.items():
                 if folder != "all":
                     numbers = result["features"]  # strict JSON wrote an infinite number as null
+                    missing = [k for k in ("add", *NUMBERS) if k not in numbers]
+                    if missing and "add" in numbers:
+                        raise Monose3Error(
+                            f"--features {path}: the frames of {folder} lack {', '.join(missing)} (written before "
+                            "the flag read it): measure them again with --check FOLDER --json FILE"
+                        )
                     out[f"{path}:{folder}"] = {k: _infinite_where_null(numbers[k]) for k in ("add", *NUMBERS)}
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
             raise Monose3Error(f"--features {path}: not a file of frame features as --json writes them ({e})") from e

@@ -327,6 +327,13 @@ def test_reliable_flag_fits_its_model_on_saved_features(tmp_path: Path, capsys) 
     assert "FLAG_MODEL_WITHOUT_INNER = DoubtModel(" in out
     assert flag.main(["--features", str(tmp_path / "missing.json")]) == 2
     assert "--features" in capsys.readouterr().err
+    # features written before the flag read the inner edges: one line that says so and what to do
+    old = folder(10)
+    del old["inner_support"]
+    (tmp_path / "old.json").write_text(json.dumps({"frames": {"features": old}}))
+    assert flag.main(["--features", str(tmp_path / "old.json")]) == 2
+    err = capsys.readouterr().err
+    assert "lack inner_support" in err and "--check" in err and len(err.strip().splitlines()) == 1
 
 
 def test_reliable_flag_asks_for_frames() -> None:
