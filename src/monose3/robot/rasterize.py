@@ -91,10 +91,10 @@ def _candidates(verts: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, size:
     corners = faces.T.reshape(-1)
     batch_f = (verts.shape[0], 3, faces.shape[0])
     u, v, z = (x.index_select(1, corners).view(batch_f) for x in (uv[..., 0], uv[..., 1], verts[..., 2]))  # [B, 3, F]
-    lo_u = torch.minimum(torch.minimum(u[:, 0], u[:, 1]), u[:, 2]).ceil().clamp_min(0)
-    lo_v = torch.minimum(torch.minimum(v[:, 0], v[:, 1]), v[:, 2]).ceil().clamp_min(0)
-    hi_u = torch.maximum(torch.maximum(u[:, 0], u[:, 1]), u[:, 2]).floor().clamp_max(width - 1)
-    hi_v = torch.maximum(torch.maximum(v[:, 0], v[:, 1]), v[:, 2]).floor().clamp_max(height - 1)
+    lo_u = _fold3(torch.minimum, u, 1).ceil().clamp_min(0)
+    lo_v = _fold3(torch.minimum, v, 1).ceil().clamp_min(0)
+    hi_u = _fold3(torch.maximum, u, 1).floor().clamp_max(width - 1)
+    hi_v = _fold3(torch.maximum, v, 1).floor().clamp_max(height - 1)
     # The doubled signed area (as _signed_area gives it), so that faces turned away are dropped
     # before anything is gathered for them.
     area = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0])
@@ -221,8 +221,8 @@ def _row_spans(rows: torch.Tensor, dy: torch.Tensor) -> tuple[torch.Tensor, torc
     slope = rows[:, 3:6]
     crossing = (-_INSIDE_EPS - at_row) / slope  # column where each barycentric reaches the edge
     flat = slope.abs() < _FLAT_SLOPE  # an edge nearly along the row: bounds nothing here
-    lower = _max3(torch.where((slope > 0) & ~flat, crossing, -torch.inf))
-    upper = -_max3(-torch.where((slope < 0) & ~flat, crossing, torch.inf))
+    lower = _fold3(torch.maximum, torch.where((slope > 0) & ~flat, crossing, -torch.inf))
+    upper = _fold3(torch.minimum, torch.where((slope < 0) & ~flat, crossing, torch.inf))
     last = rows[:, 12] - 1
     start = (lower.ceil() - 1).clamp(0, None).minimum(last + 1)
     stop = (upper.floor() + 1).minimum(last)
@@ -237,8 +237,8 @@ def _scatter_chunk(
     inside = _covers(w).nonzero(as_tuple=True)[0]  # the depth of the covered ones only
     tri, w, dx, dy = (x.index_select(0, inside) for x in (tri, w, dx, dy))
     tid, inverse_z = ids.index_select(0, tri), table[:, 9:12].index_select(0, tri)
-    w = w / _sum3(w)[:, None]
-    depth = 1.0 / _sum3(w * inverse_z)  # perspective-correct z
+    w = w / _fold3(torch.add, w)[:, None]
+    depth = 1.0 / _fold3(torch.add, w * inverse_z)  # perspective-correct z
     key = (depth / DEPTH_UNIT).long().clamp(0, (1 << 22) - 1) << _ID_BITS | tid[:, 1]
     zbuf.scatter_reduce_(0, _pixels(tid[:, 0], dx, dy, width), key, reduce="amin")
 
@@ -258,21 +258,17 @@ def _pixels(corner: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor, width: int
     return corner + dy * width + dx
 
 
-def _sum3(x: torch.Tensor) -> torch.Tensor:
-    """``x.sum(-1)`` of ``[N, 3]`` (the same sums, in the same order): five times faster on the CPU."""
-    return x[:, 0] + x[:, 1] + x[:, 2]
-
-
-def _max3(x: torch.Tensor) -> torch.Tensor:
-    """``x.amax(-1)`` of ``[N, 3]``, several times faster on the CPU."""
-    return torch.maximum(torch.maximum(x[:, 0], x[:, 1]), x[:, 2])
+def _fold3(op, x: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """``op`` (``torch.add``, ``torch.maximum``, ...) over the three entries of ``x`` along ``dim``,
+    left to right: the same sums as torch's reductions, several times faster on the CPU over so few."""
+    a, b, c = x.unbind(dim)
+    return op(op(a, b), c)
 
 
 def _covers(barycentrics: torch.Tensor) -> torch.Tensor:
     """Whether a triangle covers the pixel of each of its screen ``barycentrics`` ``[N, 3]``
     (a pixel on an edge belongs to both triangles: no cracks between them)."""
-    inside = barycentrics >= -_INSIDE_EPS
-    return inside[:, 0] & inside[:, 1] & inside[:, 2]  # several times faster than .all(-1) on the CPU
+    return _fold3(torch.logical_and, barycentrics >= -_INSIDE_EPS)
 
 
 def gather_vertices(values: torch.Tensor, batch_index: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
@@ -300,7 +296,7 @@ def _resolve(zbuf, verts, faces, K, batch, size, barycentrics: bool) -> Fragment
         pixel = torch.stack([pix % width, (pix // width) % height], -1).float()
         w = _barycentrics_at(uv, pixel, _signed_area(uv)).clamp_min(0)
         persp = w / tri[..., 2]
-        norm = _sum3(persp)[:, None]
+        norm = _fold3(torch.add, persp)[:, None]
         if bary is not None:
             bary.index_copy_(0, pix, persp / norm)
         depth.index_copy_(0, pix, 1.0 / norm[:, 0])
