@@ -4,8 +4,14 @@ import torch
 
 from monose3.geometry.camera import project
 from monose3.geometry.poses import make_pose, transform_points
-from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
-from monose3.method.flow_pose import field_targets, pose_from_field, render_surface, solve_pose
+from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle, rotvec_to_matrix
+from monose3.method.flow_pose import (
+    field_targets,
+    pose_from_field,
+    render_surface,
+    reprojection_jacobian,
+    solve_pose,
+)
 from monose3.method.loss import flow_loss
 from monose3.method.pose_space import MIN_DEPTH, base_frame, centroid_frame
 
@@ -27,6 +33,27 @@ def _nudged(pose: torch.Tensor, angles=(0.03, -0.04, 0.05), shift=(0.01, -0.02, 
     """``pose`` rotated about its origin and shifted (a small-t forward-process step)."""
     rot = euler_xyz_to_matrix(torch.tensor([angles], dtype=pose.dtype)) @ pose[:, :3, :3]
     return make_pose(rot, pose[:, :3, 3] + torch.tensor([shift], dtype=pose.dtype))
+
+
+def test_reprojection_jacobian_matches_finite_differences_of_the_left_update():
+    gen = torch.Generator().manual_seed(0)
+    points = torch.randn(2, 5, 3, generator=gen, dtype=torch.float64) * 0.3
+    pose = make_pose(euler_xyz_to_matrix(torch.tensor([[0.3, -0.2, 0.5], [1.0, 0.4, -0.3]], dtype=torch.float64)),
+                     torch.tensor([[0.1, -0.05, 1.5], [-0.2, 0.1, 1.2]], dtype=torch.float64))  # fmt: skip
+    K = torch.tensor([[[300.0, 0, 160], [0, 310, 120], [0, 0, 1]]], dtype=torch.float64).expand(2, 3, 3)
+    rotated = points @ pose[:, :3, :3].transpose(1, 2)
+    jac = reprojection_jacobian(rotated + pose[:, None, :3, 3], rotated, K)
+    assert jac.shape == (2, 5, 2, 6)
+
+    def pixels(update: torch.Tensor) -> torch.Tensor:  # R <- exp(omega) R, t <- t + delta
+        rot = rotvec_to_matrix(update[:3].expand(2, 3)) @ pose[:, :3, :3]
+        return project(transform_points(make_pose(rot, pose[:, :3, 3] + update[3:]), points), K)
+
+    for axis in range(6):
+        step = torch.zeros(6, dtype=torch.float64)
+        step[axis] = 1e-6
+        numeric = (pixels(step) - pixels(-step)) / 2e-6
+        assert torch.allclose(jac[..., axis], numeric, atol=1e-4)
 
 
 def test_render_surface_points_project_back_onto_their_pixels(renderers, models, sample_view):

@@ -23,7 +23,7 @@ from torch import nn
 
 from monose3.geometry.camera import project, projection_jacobian
 from monose3.geometry.poses import make_pose, transform_points
-from monose3.geometry.rotations import rotvec_to_matrix, skew
+from monose3.geometry.rotations import rotvec_to_matrix
 from monose3.method.pose_space import MIN_DEPTH
 
 SOLVE_ITERATIONS = 3  # damped Gauss-Newton steps from H_t (the update is small after the first)
@@ -99,10 +99,12 @@ def reprojection_jacobian(cam_points: torch.Tensor, rotated: torch.Tensor, K: to
     """d(pixel)/d(omega, delta) ``[B, N, 2, 6]`` of points X = R P + t under the left update
     R <- exp(omega) R, t <- t + delta (rotation about the frame's origin, camera axes).
 
-    ``cam_points``: X ``[B, N, 3]``; ``rotated``: R P ``[B, N, 3]``; K ``[B, 3, 3]``."""
-    d_rotated = -skew(rotated)
-    eye = torch.eye(3, dtype=rotated.dtype, device=rotated.device).expand_as(d_rotated)
-    return projection_jacobian(cam_points, K) @ torch.cat([d_rotated, eye], -1)
+    ``cam_points``: X ``[B, N, 3]``; ``rotated``: R P ``[B, N, 3]``; K ``[B, 3, 3]``. Each row p of
+    d(pixel)/dX gives the row -p [R P]_x = (R P) x p for omega: a cross product, not a 2x3 @ 3x6
+    product per point (many small matrix products are slow on the CPU)."""
+    d_point = projection_jacobian(cam_points, K)
+    d_omega = torch.linalg.cross(rotated[..., None, :].expand_as(d_point), d_point, dim=-1)
+    return torch.cat([d_omega, d_point], -1)
 
 
 def solve_pose(
@@ -125,15 +127,18 @@ def solve_pose(
     solution is the MAP pose: a field the solve cannot trust as a whole moves the pose less."""
     scale = torch.cat([torch.ones_like(pose[:, :3, 3]), pose[:, 2:3, 3].abs().expand(-1, 3)], 1)
     total = torch.zeros_like(scale)  # the update so far, in the prior's units
+    batch = len(pose)
+    # The normal equations over all 2N pixel rows at once (one matrix product per sample).
+    row_weights = weights[..., None].expand(*weights.shape, 2).reshape(batch, 1, -1)
     for _ in range(iterations):
         rotated = points @ pose[:, :3, :3].transpose(1, 2)
         cam = rotated + pose[:, None, :3, 3]
         cam = torch.cat([cam[..., :2], cam[..., 2:].clamp_min(MIN_SOLVE_DEPTH)], -1)
-        residual = target_uv - project(cam, K)
-        jac = reprojection_jacobian(cam, rotated, K) * scale[:, None, None]
-        w = weights[..., None, None]
-        normal = (jac.transpose(-1, -2) @ (w * jac)).sum(1)
-        rhs = (jac.transpose(-1, -2) @ (w * residual[..., None])).sum(1)[..., 0]
+        residual = (target_uv - project(cam, K)).reshape(batch, -1, 1)
+        jac = (reprojection_jacobian(cam, rotated, K) * scale[:, None, None]).reshape(batch, -1, 6)
+        weighted = jac.transpose(1, 2) * row_weights
+        normal = weighted @ jac
+        rhs = (weighted @ residual)[..., 0]
         diag = torch.diagonal(normal, dim1=-2, dim2=-1)
         if prior is not None:
             normal = normal + torch.diag_embed(prior)
