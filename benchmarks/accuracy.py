@@ -23,6 +23,10 @@ The sets are the README's (``monose3 generate --renderer tiny``: rendered by pyb
 trained on):
 
     python benchmarks/accuracy.py --data data/reallike_tiny data/hard_tiny --limit 60 --json accuracy.json
+
+Each set's line names its frames' digest (``datasets.frames_digest``): figures compare only
+between runs on sets with the same digest (``docs/results/accuracy.json`` records the sets it
+was measured on).
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ from tqdm import tqdm
 
 from monose3 import atomic
 from monose3.api import load_estimator
-from monose3.data.datasets import open_dataset
+from monose3.data.datasets import frames_digest, open_dataset
 from monose3.errors import run_reporting_errors
 from monose3.geometry.poses import perturb_poses
 from monose3.geometry.rotations import axis_angle_to_matrix
@@ -114,7 +118,9 @@ def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
         tracking["seconds"].append(time.perf_counter() - tick)
         tracking["add"].append(frame_add(estimator, frame, tracked.poses[0]))
         tracking["reliable"].append(bool(tracked.reliable[0]))
-    return summarise(adds, seconds, flagged, refine, tracking, args.bad_mm / 1000)
+    summary = summarise(adds, seconds, flagged, refine, tracking, args.bad_mm / 1000)
+    summary["frames"] = {"count": n, "digest": frames_digest([frames[i] for i in range(n)])}
+    return summary
 
 
 def summarise(adds, seconds, flagged, refine, tracking, bad_m: float) -> dict:
@@ -163,7 +169,8 @@ def print_report(results: dict[str, dict], args) -> None:
         r = results[n]
         split = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"][STAGES[-1]]["seconds"].items())
         ref, flag = r["refinement"], r["reliable_flag"]
-        print(f"\n{n}: default pipeline s/img split: {split}")
+        frames = f"{r['frames']['count']} frames, digest {r['frames']['digest']}"
+        print(f"\n{n} ({frames}): default pipeline s/img split: {split}")
         print(
             f"  refinement from truth moved {args.start_deg:g} deg / {args.start_cm:g} cm: "
             f"{100 * ref['closer_share']:.0f} % end closer; median ADD {ref['start_median_mm']:.1f} -> "

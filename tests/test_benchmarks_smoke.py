@@ -233,6 +233,7 @@ def test_accuracy_small(tmp_path: Path, tiny_dream: Path, capsys, keep_threads: 
         assert line in out
     data = json.loads((tmp_path / "a.json").read_text())[tiny_dream.name]
     assert set(data["stages"]) == set(acc.STAGES) and 0 <= data["refinement"]["closer_share"] <= 1
+    assert data["frames"]["count"] == 2 and f"digest {data['frames']['digest']}" in out
 
 
 @pytest.mark.slow

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from monose3.data.datasets import detect_layout, open_dataset
+from monose3.data.datasets import detect_layout, frames_digest, open_dataset
 from monose3.data.dream import UNREAL_TO_OPENCV, DreamDataset
 from monose3.data.dream_writer import write_camera_settings, write_frame
 from monose3.data.frame import Frame
@@ -281,3 +281,20 @@ def test_open_dataset_detects_layout(tmp_path: Path, panda: RobotModel) -> None:
         open_dataset(tmp_path / "nothing", panda)
     with pytest.raises(Monose3Error, match="not found"):
         open_dataset(tmp_path / "gone", panda)
+
+
+def test_frames_digest_names_the_frames_and_sees_a_changed_image_or_pose(tmp_path: Path, panda: RobotModel) -> None:
+    import dataclasses
+    import shutil
+
+    write_real_set(tmp_path / "a", panda, 3, noise=0.0)
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    a, b = open_dataset(tmp_path / "a", panda), open_dataset(tmp_path / "b", panda)
+    digest = frames_digest([a[i] for i in range(3)])
+    assert len(digest) == 16 and digest == frames_digest([b[i] for i in range(3)])  # a copy: the same frames
+    assert frames_digest([a[i] for i in range(2)]) != digest
+    moved = dataclasses.replace(a[2], pose=a[2].pose + np.eye(4) * 1e-9)
+    assert frames_digest([a[0], a[1], moved]) != digest
+    image = b[1].image_path
+    image.write_bytes(image.read_bytes() + b"\0")
+    assert frames_digest([b[i] for i in range(3)]) != digest

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
+from collections.abc import Sequence
 from pathlib import Path
+
+import numpy as np
 
 from monose3.data.annotations import FrameSequence
 from monose3.data.dream import FRAME_JSON, DreamDataset
+from monose3.data.frame import Frame
 from monose3.data.robokeygen import RoboKeyGenDataset, find_sequences
 from monose3.errors import Monose3Error
 from monose3.robot import RobotModel, RobotSpec
@@ -47,3 +52,17 @@ def load_datasets(data_dirs: list[str | Path], robot: RobotModel | RobotSpec | s
             "generate some with `monose3 generate` or use --synthetic"
         )
     return frames
+
+
+def frames_digest(frames: Sequence[Frame]) -> str:
+    """A fingerprint (16 hex digits of SHA-256) of ``frames``: each one's image (its file's bytes,
+    or its pixels), intrinsics, joints and true pose. Copies of a held-out set with the same
+    digest hold the same frames, so their figures compare; a set generated again by another
+    version of the generator can differ in a frame, and then the digest differs."""
+    sha = hashlib.sha256()
+    for frame in frames:
+        sha.update(frame.image_path.read_bytes() if frame.image_path is not None else frame.load_image().tobytes())
+        for values in (frame.K, frame.joints, frame.pose):
+            if values is not None:
+                sha.update(np.ascontiguousarray(values, np.float64).tobytes())
+    return sha.hexdigest()[:16]
