@@ -1,4 +1,4 @@
-"""Render throughput of monose3's batched PyTorch renderer, against pybullet's TinyRenderer.
+"""Render throughput of monose3's batched renderer, against pybullet's TinyRenderer.
 
 Usage: ``python benchmarks/render.py [--seconds S] [--batch 16] [--robot panda] [--picture PNG]``
 
@@ -6,8 +6,10 @@ On the CPU: renders/s at 128x96 and 320x240 in batches of ``--batch`` (all torch
 and pybullet TinyRenderer's renders/s over a pool of one process per core on the same jobs,
 in the same run; the ratio is the figure (goal >= 1.0x). Also the silhouettes alone
 (``RobotRenderer.silhouettes``, the fit's comparisons) against unshaded renders (mask and
-depth). On a GPU: renders/s in batches of 256 (goals 20,000/s at 128x96 and 5,000/s at
-320x240). Nothing is asserted: the numbers depend on the machine and on what else runs on it.
+depth), and unshaded renders with the compiled rasteriser (``rasterize_cpu.py``, the CPU's
+default) against the tensor code. On a GPU: renders/s in batches of 256 (goals 20,000/s at
+128x96 and 5,000/s at 320x240). Nothing is asserted: the numbers depend on the machine and on
+what else runs on it.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from monose3.data.scenes.profiles import PROFILES
 from monose3.data.scenes.sampling import sample_scene
 from monose3.errors import run_reporting_errors
 from monose3.robot import RobotModel
+from monose3.robot import rasterize as rasterize_module
 from monose3.robot.renderer import RenderJob, RobotRenderer
 
 SIZES = ((128, 96), (320, 240))
@@ -71,6 +74,15 @@ def torch_rate(renderer: RobotRenderer, jobs: list[RenderJob], batch: int, secon
     if device == "cuda":
         torch.cuda.synchronize()
     return done * batch / (time.perf_counter() - start)
+
+
+def tensor_code_rate(renderer: RobotRenderer, jobs: list[RenderJob], batch: int, seconds: float) -> float:
+    """:func:`torch_rate` of unshaded renders on the CPU with the tensor rasteriser (what runs without numba)."""
+    compiled, rasterize_module.rasterize_cpu = rasterize_module.rasterize_cpu, None
+    try:
+        return torch_rate(renderer, jobs, batch, seconds, "cpu", "unshaded")
+    finally:
+        rasterize_module.rasterize_cpu = compiled
 
 
 def pybullet_rate(model: RobotModel, jobs: list[RenderJob], seconds: float, workers: int) -> float | None:
@@ -124,7 +136,7 @@ def main() -> int:
         f"robot {model.name}, {len(model.mesh.faces)} triangles and {len(model.mesh.caps)} in caps, {cores} cores, "
         f"torch threads {torch.get_num_threads()}"
     )
-    print(f"{'size':>8} {'device':>6} {'batch':>5} {'torch/s':>9} {'pybullet/s':>11} {'ratio':>6}")
+    print(f"{'size':>8} {'device':>6} {'batch':>5} {'monose3/s':>9} {'pybullet/s':>11} {'ratio':>6}")
     for size in SIZES:
         jobs = make_jobs(model, size, 4 * args.batch)
         ours = torch_rate(renderer, jobs, args.batch, args.seconds, "cpu")
@@ -139,6 +151,14 @@ def main() -> int:
         print(
             f"{size[0]:>4}x{size[1]:<3} silhouettes alone {alone:.1f}/s, unshaded renders {unshaded:.1f}/s:"
             f" {alone / unshaded:.2f}x"
+        )
+    for size in SIZES if rasterize_module.rasterize_cpu is not None else ():
+        jobs = make_jobs(model, size, 4 * args.batch)
+        compiled = torch_rate(renderer, jobs, args.batch, args.seconds, "cpu", "unshaded")
+        tensor = tensor_code_rate(renderer, jobs, args.batch, args.seconds)
+        print(
+            f"{size[0]:>4}x{size[1]:<3} unshaded renders, compiled rasteriser {compiled:.1f}/s, tensor code"
+            f" {tensor:.1f}/s: {compiled / tensor:.2f}x"
         )
     if torch.cuda.is_available():
         for size in SIZES:

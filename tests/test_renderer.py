@@ -227,7 +227,8 @@ def test_silhouettes_are_the_renders_masks(models, renderers, sample_view, robot
     masks = renderers[robot].render(*args, shade=False).mask
     assert masks.any() and not masks.all()
     assert torch.equal(renderers[robot].silhouettes(*args), masks)
-    monkeypatch.setattr("monose3.robot.rasterize.CHUNK", 5000)
+    monkeypatch.setattr(rasterize_module, "rasterize_cpu", None)  # the tensor code, in small chunks
+    monkeypatch.setattr(rasterize_module, "CHUNK", 5000)
     assert torch.equal(renderers[robot].silhouettes(*args), masks)
 
 
@@ -344,8 +345,8 @@ def test_robot_files_the_renderer_cannot_use(tmp_path, mesh, words):
 
 
 def test_row_spans_miss_no_pixel_of_a_box(monkeypatch):
-    """Testing only each row's span of a triangle's box finds every pixel testing the whole box
-    does, on slivers, near-horizontal and near-vertical edges and large triangles alike."""
+    """Testing only each row's span of a triangle's box (the tensor code) finds every pixel testing
+    the whole box does, on slivers, near-horizontal and near-vertical edges and large triangles alike."""
     rng = np.random.default_rng(5)
     centre = rng.uniform([0, 0], [160, 120], size=(300, 1, 2))
     uv = centre + rng.normal(scale=rng.choice([0.5, 4.0, 40.0], size=(300, 1, 1)), size=(300, 3, 2))
@@ -355,6 +356,7 @@ def test_row_spans_miss_no_pixel_of_a_box(monkeypatch):
     K = torch.tensor([[[100.0, 0, 0], [0, 100.0, 0], [0, 0, 1]]], dtype=torch.float64)
     verts = torch.as_tensor(np.concatenate([uv / 100 * z, z], -1).reshape(1, -1, 3))
     faces = torch.arange(900).view(300, 3)
+    monkeypatch.setattr(rasterize_module, "rasterize_cpu", None)  # the tensor code's row spans
     renders = {}
     for small_box in (0, rasterize_module.SMALL_BOX, 10**9):  # rows everywhere, as shipped, boxes everywhere
         monkeypatch.setattr(rasterize_module, "SMALL_BOX", small_box)
