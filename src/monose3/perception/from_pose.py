@@ -27,10 +27,13 @@ from monose3.robot.renderer import RobotRenderer
 # Coarse, fine: between frames the robot moves little. Chosen on 100 frames each of seeds 5005
 # (hard) and 6006 (reallike), from the true pose moved 2 cm / 3 deg as benchmarks/accuracy.py
 # moves it, the variants interleaved frame by frame for their times: 4 + 4 ends at a median
-# 18.4 / 3.1 mm, 4 + 5 at 16.3 / 2.8 mm in 8 % more time, 4 + 6 at 14.8 / 2.4 mm in 18 % more,
-# which brought tracking on the held-out reallike frames to 5.1 images/s, too near the 5 it
-# must keep (README); 4 + 8 and 6 + 6 end nearer still, at 19-27 % more (not interleaved).
-TRACK_ITERATIONS = (4, 5)
+# 18.4 / 3.1 mm, 4 + 5 at 16.3 / 2.8 mm in 8 % more time, 4 + 6 at 14.8 / 2.4 mm in 18 % more.
+# 4 + 5 kept tracking at 5.1 images/s on the held-out reallike frames until the compiled
+# rasteriser (robot/rasterize_cpu.py) brought it to 8.7; then, on 80 frames each of seeds 9009
+# (hard) and 16016 (reallike), interleaved: 4 + 5 ends at a median 22.8 / 3.0 mm with 41 / 1 %
+# of frames more than 30 mm off, 4 + 8 at 16.0 / 2.5 mm and 38 / 0 % in 18 % more time, 6 + 8
+# at 15.8 / 2.5 mm and 34 / 0 % in 23 % more, 6 + 12 at 13.4 / 2.1 mm and 32 / 1 % in 48 % more.
+TRACK_ITERATIONS = (6, 8)
 
 
 def view_around(parser: RobotParser, robot: RobotModel, image: np.ndarray, K: np.ndarray, joints: np.ndarray,
@@ -65,7 +68,7 @@ def track_pose(
     frames the robot can move further than a few iterations reach, and a lost track is found again.
     The view's mask is not mirror-averaged: on the held-out frames tracking was no more accurate
     with it, and 10 % slower (benchmarks/accuracy.py). Nor does it pull the robot's inner edges
-    (``fitting.INNER_EDGE_WEIGHT``): from 2 cm / 3 deg off, in 4 + 5 iterations, they ended
+    (``fitting.INNER_EDGE_WEIGHT``): from 2 cm / 3 deg off, in 4 + 5 iterations (then the default), they ended
     further (held-out median 3.6 -> 3.8 mm reallike, 19.0 -> 21.0 mm hard) at 10 % more time;
     nor does it score them (``best_fit``'s ``inner_edges``): its one refined pose needs no choice."""
     view = view_around(parser, robot, image, K, joints, previous, mirror=False)
