@@ -208,7 +208,7 @@ def _rasterize_compiled(verts, faces, K, size, cullable, barycentrics: bool) -> 
     width, height = size
     v, f, k, cull = _as_arrays(verts, faces, K, cullable)
     zbuf = rasterize_cpu.zbuffer(v, f, k, cull, size, NEAR, -_INSIDE_EPS, DEPTH_UNIT, _EMPTY)
-    face, depth, bary = rasterize_cpu.resolve(zbuf, v, f, k, size, barycentrics)
+    face, depth, bary = rasterize_cpu.resolve(zbuf, v, f, k, size, _EMPTY, barycentrics)
     shape = (len(v), height, width)
     bary = None if bary is None else torch.from_numpy(bary).view(*shape, 3)
     return Fragments(face=torch.from_numpy(face).view(shape), bary=bary, depth=torch.from_numpy(depth).view(shape))

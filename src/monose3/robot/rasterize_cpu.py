@@ -27,6 +27,20 @@ def _project(x, y, z, fx, fy, cx, cy):
 
 
 @numba.njit(cache=True, nogil=True)
+def _corners(verts, faces, K, b, f):
+    """Face ``f`` of batch row ``b`` on screen: its corners' pixels and depths, and its doubled
+    signed area (``rasterize._signed_area``)."""
+    fx, fy, cx, cy = K[b, 0, 0], K[b, 1, 1], K[b, 0, 2], K[b, 1, 2]
+    i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+    z0, z1, z2 = verts[b, i0, 2], verts[b, i1, 2], verts[b, i2, 2]
+    u0, v0 = _project(verts[b, i0, 0], verts[b, i0, 1], z0, fx, fy, cx, cy)
+    u1, v1 = _project(verts[b, i1, 0], verts[b, i1, 1], z1, fx, fy, cx, cy)
+    u2, v2 = _project(verts[b, i2, 0], verts[b, i2, 1], z2, fx, fy, cx, cy)
+    area = (u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0)
+    return u0, v0, z0, u1, v1, z1, u2, v2, z2, area
+
+
+@numba.njit(cache=True, nogil=True)
 def _draw(verts, faces, K, cullable, width, height, near, inside_eps, depth_unit, zbuf, covered):
     """Every triangle of every batch row: its box, the edge test of each pixel centre in it, and
     either the z-buffer's key (quantised depth, triangle id) folded in by minimum (``zbuf``)
@@ -35,20 +49,14 @@ def _draw(verts, faces, K, cullable, width, height, near, inside_eps, depth_unit
     n_faces = faces.shape[0]
     zero, one = _F(0.0), _F(1.0)
     for b in range(verts.shape[0]):
-        fx, fy, cx, cy = K[b, 0, 0], K[b, 1, 1], K[b, 0, 2], K[b, 1, 2]
         for f in range(n_faces):
-            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-            z0, z1, z2 = verts[b, i0, 2], verts[b, i1, 2], verts[b, i2, 2]
+            u0, v0, z0, u1, v1, z1, u2, v2, z2, area = _corners(verts, faces, K, b, f)
             if not (z0 > near and z1 > near and z2 > near):
                 continue
-            u0, v0 = _project(verts[b, i0, 0], verts[b, i0, 1], z0, fx, fy, cx, cy)
-            u1, v1 = _project(verts[b, i1, 0], verts[b, i1, 1], z1, fx, fy, cx, cy)
-            u2, v2 = _project(verts[b, i2, 0], verts[b, i2, 1], z2, fx, fy, cx, cy)
             lo_u = max(np.ceil(min(min(u0, u1), u2)), zero)
             lo_v = max(np.ceil(min(min(v0, v1), v2)), zero)
             hi_u = min(np.floor(max(max(u0, u1), u2)), _F(width - 1))
             hi_v = min(np.floor(max(max(v0, v1), v2)), _F(height - 1))
-            area = (u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0)
             drawn = hi_u >= lo_u and hi_v >= lo_v and abs(area) > _F(1e-6) and (area < zero or not cullable[f])
             if not drawn:  # (written so that NaNs are dropped, as the tensor code's comparisons drop them)
                 continue
@@ -85,27 +93,21 @@ def _draw(verts, faces, K, cullable, width, height, near, inside_eps, depth_unit
 
 
 @numba.njit(cache=True, nogil=True)
-def _resolve(zbuf, verts, faces, K, width, height, face, depth, bary):
+def _resolve(zbuf, verts, faces, K, width, height, empty, face, depth, bary):
     """``rasterize._resolve``: per covered pixel, the winning face, its depth and (where
     ``bary`` has rows) its perspective-correct barycentrics."""
     n_faces = faces.shape[0]
     mask = (1 << _ID_BITS) - 1
     zero = _F(0.0)
     for pixel in range(zbuf.shape[0]):
-        if zbuf[pixel] == np.iinfo(np.int64).max:
+        if zbuf[pixel] == empty:
             continue
         tri = zbuf[pixel] & mask
         b, f = tri // n_faces, tri % n_faces
         face[pixel] = f
-        fx, fy, cx, cy = K[b, 0, 0], K[b, 1, 1], K[b, 0, 2], K[b, 1, 2]
-        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        z0, z1, z2 = verts[b, i0, 2], verts[b, i1, 2], verts[b, i2, 2]
-        u0, v0 = _project(verts[b, i0, 0], verts[b, i0, 1], z0, fx, fy, cx, cy)
-        u1, v1 = _project(verts[b, i1, 0], verts[b, i1, 1], z1, fx, fy, cx, cy)
-        u2, v2 = _project(verts[b, i2, 0], verts[b, i2, 1], z2, fx, fy, cx, cy)
+        u0, v0, z0, u1, v1, z1, u2, v2, z2, area = _corners(verts, faces, K, b, f)
         px, py = _F(pixel % width), _F((pixel // width) % height)
         r0u, r0v, r1u, r1v, r2u, r2v = u0 - px, v0 - py, u1 - px, v1 - py, u2 - px, v2 - py
-        area = (u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0)
         p0 = max((r1u * r2v - r1v * r2u) / area, zero) / z0
         p1 = max((r2u * r0v - r2v * r0u) / area, zero) / z1
         p2 = max((r0u * r1v - r0v * r1u) / area, zero) / z2
@@ -137,12 +139,12 @@ def coverage(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, cullable: np.n
 
 
 def resolve(zbuf: np.ndarray, verts: np.ndarray, faces: np.ndarray, K: np.ndarray, size: tuple[int, int],
-            barycentrics: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:  # fmt: skip
+            empty: int, barycentrics: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:  # fmt: skip
     """(face ``[B * H * W]`` (-1 where empty), depth (0 there), barycentrics ``[B * H * W, 3]`` or
-    None) of a :func:`zbuffer`."""
+    None) of a :func:`zbuffer` (``empty`` where nothing was drawn)."""
     width, height = size
     face = np.full(zbuf.shape, -1, np.int64)
     depth = np.zeros(zbuf.shape, np.float32)
     bary = np.zeros((len(zbuf) if barycentrics else 0, 3), np.float32)
-    _resolve(zbuf, verts, faces, K, width, height, face, depth, bary)
+    _resolve(zbuf, verts, faces, K, width, height, empty, face, depth, bary)
     return face, depth, bary if barycentrics else None
