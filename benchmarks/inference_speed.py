@@ -41,9 +41,9 @@ import torch
 from monose3.data.datasets import open_dataset
 from monose3.data.scenes.writer import generate_dataset
 from monose3.errors import run_reporting_errors
+from monose3.estimator import PoseEstimator
 from monose3.method.config import DESIGNS, get_preset, with_section
 from monose3.method.designs import build_denoiser
-from monose3.method.estimator import PoseEstimator
 from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry
 from monose3.method.update import apply_update, raw_to_update
@@ -87,7 +87,7 @@ def timed_helpers(est: PoseEstimator) -> dict[str, float]:
     'other' column's breakdown); returns the dict the wrappers add their seconds to."""
     acc = dict.fromkeys(HELPERS, 0.0)
     for name in HELPERS:
-        original = getattr(est, name)
+        original = getattr(est.reverse, name)
 
         def wrapper(*args, _original=original, _name=name, **kwargs):
             tick = time.perf_counter()
@@ -96,7 +96,7 @@ def timed_helpers(est: PoseEstimator) -> dict[str, float]:
             finally:
                 acc[_name] += time.perf_counter() - tick
 
-        setattr(est, name, wrapper)
+        setattr(est.reverse, name, wrapper)
     return acc
 
 
@@ -140,13 +140,13 @@ def overhead_breakdown(est: PoseEstimator, frame: dict, repeats: int = 30) -> di
     (so a preempted call on a busy machine does not masquerade as overhead)."""
     net = est.config.network
     images, Ks, joints = [frame["image"]], frame["K"][None], frame["joints"][None]
-    batch = est.prepare(images, Ks, joints, 1)
+    batch = est.reverse.prepare(images, Ks, joints, 1)
     pose = centroid_frame(torch.from_numpy(np.asarray(frame["pose"], np.float64)[None]), batch.centroid)
     boxes, K_crop = crop_geometry(pose, batch.points_ref, batch.K, net.render_size)
     raw = torch.zeros(1, 9, dtype=torch.float64)
     pieces = {
-        "prepare (per call)": lambda: est.prepare(images, Ks, joints, 1),
-        "finish (per call)": lambda: est.finish(batch, [pose, pose], 1, 1),
+        "prepare (per call)": lambda: est.reverse.prepare(images, Ks, joints, 1),
+        "finish (per call)": lambda: est.reverse.finish(batch, [pose, pose], 1, 1),
         "crop_geometry (per step)": lambda: crop_geometry(pose, batch.points_ref, batch.K, net.render_size),
         "crop_batch (per step)": lambda: crop_batch(batch.images, boxes, net.render_size),
         "render (per step)": lambda: est.renderer.render(

@@ -185,7 +185,7 @@ def frames(tiny_dream):
 def tiny():
     """A randomly initialised small denoiser (zero head: every update is the identity) with a
     short reverse process, so a frame costs a few small network calls; images of 160x120."""
-    from monose3.method.estimator import PoseEstimator
+    from monose3.estimator import PoseEstimator
 
     config = with_section(
         get_preset("cpu"), "network", backbone="resnet18", render_size=(64, 48), input_size=(160, 120)

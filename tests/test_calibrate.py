@@ -19,6 +19,7 @@ from monose3.calibration import REASON_CONSENSUS, REASON_OUT_OF_VIEW, REASON_UNR
 from monose3.data.dream_writer import write_frame
 from monose3.data.frames import load_frames
 from monose3.errors import Monose3Error
+from monose3.estimator import Estimate, PoseEstimator
 from monose3.geometry.averaging import (
     geometric_median,
     mean_pose,
@@ -30,7 +31,6 @@ from monose3.geometry.averaging import (
 )
 from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import matrix_to_rotvec, rotation_angle, rotvec_to_matrix
-from monose3.method.estimator import Estimate, PoseEstimator
 from monose3.robot.jobs import RenderJob
 
 SIZE = (160, 120)

@@ -13,7 +13,7 @@ def test_every_command_module_imports_without_torch_or_pybullet():
         "import importlib, sys\n"
         "from monose3.apps.cli import COMMANDS\n"
         "for module, _ in COMMANDS.values(): importlib.import_module(module)\n"
-        "print(sorted(m for m in ('torch', 'pybullet', 'monose3.method.estimator') if m in sys.modules))\n"
+        "print(sorted(m for m in ('torch', 'pybullet', 'monose3.estimator') if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -201,7 +201,7 @@ def test_the_registry_builds_every_configured_design_and_only_those():
 
 
 def test_flow_solve_runs_on_the_pretrained_trunk_and_starts_from_imagenet_weights():
-    from monose3.perception.backbone import pretrained_lite0
+    from monose3.networks.backbone import pretrained_lite0
 
     config = NetworkConfig(backbone="efficientnet-lite0", render_size=(64, 48), design="flow-solve")
     net = build_denoiser(config).eval()

@@ -6,10 +6,11 @@ import torch
 from conftest import TINY_NET, project_np
 
 from monose3.errors import Monose3Error
+from monose3.estimator import PoseEstimator
 from monose3.geometry.rotations import rotation_angle
 from monose3.method.config import get_preset
 from monose3.method.designs import build_denoiser
-from monose3.method.estimator import INIT_BOX_FRACTION, PoseEstimator
+from monose3.method.reverse import INIT_BOX_FRACTION
 
 
 def make_estimator(fc_weight=None, seed: int = 0) -> PoseEstimator:
@@ -55,8 +56,8 @@ def _inputs(frames, n):
 
 def test_initialisation_fits_the_central_box(estimator, frames):
     images, Ks, joints = _inputs(frames, 2)
-    batch = estimator.prepare(images, Ks, joints, 1)
-    pose = estimator.initial_poses(batch)
+    batch = estimator.reverse.prepare(images, Ks, joints, 1)
+    pose = estimator.reverse.initial_poses(batch)
     pts = batch.points_ref @ pose[:, :3, :3].transpose(1, 2) + pose[:, None, :3, 3]
     uv = (
         pts[..., :2] / pts[..., 2:] * torch.stack([batch.K[:, 0, 0], batch.K[:, 1, 1]], 1)[:, None]

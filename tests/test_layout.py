@@ -2,8 +2,11 @@
 
 Layers, lowest first; a module may import its own layer and the layers below it:
 
-    base (errors.py, atomic.py) <- geometry <- robot <- data <- method / perception <- training / report
-    <- apps (with api.py, __init__.py, __main__.py beside it)
+    base (errors.py, atomic.py) <- geometry <- networks <- robot <- data <- method / perception
+    <- estimator.py / tracking.py <- training / report <- apps (with api.py, __init__.py, __main__.py beside it)
+
+The two pipelines, method/ (the paper's diffusion) and perception/ (the geometric fit), share a
+layer and never import each other; no module imports itself back through others (no cycle).
 
 Within apps/, a command module (an ``apps/*.py`` with a ``run_<name>`` function) never imports
 another command module; ``apps/arguments.py`` and ``apps/cli.py`` are the shared shell that
@@ -29,9 +32,11 @@ SHELL = ("arguments", "cli")  # apps/ modules shared by every command
 LAYERS = (
     ("errors", "atomic"),
     ("geometry",),
+    ("networks",),
     ("robot",),
     ("data",),
     ("method", "perception"),
+    ("estimator", "tracking"),
     ("training", "report"),
     ("apps", "api", "calibration", "__init__", "__main__"),
 )
@@ -136,6 +141,70 @@ def layering_violations() -> list[str]:
 def test_imports_follow_the_layers():
     violations = layering_violations()
     assert not violations, _report(violations)
+
+
+def test_the_two_pipelines_never_import_each_other():
+    violations = [
+        f"{_rel(path)}:{line} imports {target}"
+        for me, other in (("method", "perception"), ("perception", "method"))
+        for path in python_files(f"src/monose3/{me}")
+        for line, target, _ in imports(path)
+        if top_name(target) == other
+    ]
+    assert not violations, _report(violations)
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Every monose3 module's monose3 imports (those under ``if TYPE_CHECKING:`` too: a cycle
+    hidden from the interpreter is still two ideas that lean on each other)."""
+    graph = {}
+    for path in python_files("src/monose3"):
+        me = module_name(path)
+        graph[me] = {t for _, t, _ in imports(path) if top_name(t) is not None and t != me}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index, low, on_stack, stack, found = {}, {}, set(), [], []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for nxt in graph.get(node, ()):
+            if nxt not in graph:
+                continue
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on_stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_import_cycles_are_found():
+    """Guards the next test against a search that finds nothing."""
+    assert import_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_import_cycle():
+    cycles = import_cycles(import_graph())
+    assert not cycles, _report([" <-> ".join(c) for c in cycles])
 
 
 def test_geometry_imports_only_the_base():
@@ -295,7 +364,8 @@ def test_projection_is_written_only_in_geometry_camera():
 
 # The modules that drive every denoiser design alike (the designs live in method/designs/).
 DESIGN_DRIVERS = (
-    PACKAGE / "method" / "estimator.py",
+    PACKAGE / "estimator.py",
+    PACKAGE / "method" / "reverse.py",
     PACKAGE / "training" / "loop.py",
     PACKAGE / "training" / "objective.py",
 )

@@ -13,11 +13,11 @@ from monose3.errors import Monose3Error
 from monose3.geometry.camera import project
 from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import axis_angle_to_matrix
-from monose3.perception.backbone import FEATURE_CHANNELS, pretrained_lite0
+from monose3.networks.backbone import FEATURE_CHANNELS, pretrained_lite0
 from monose3.perception.config import ParserConfig
 from monose3.perception.edges import edge_terms, find_edges, inner_edge_support, inner_edge_terms
+from monose3.perception.fit_result import Fit
 from monose3.perception.fitting import (
-    Fit,
     best_fit,
     depth_restarts,
     distinct_poses,

@@ -17,10 +17,10 @@ from monose3.data.dream_writer import write_frame
 from monose3.data.frame import Frame
 from monose3.data.video import read_video, video_frames
 from monose3.errors import Monose3Error
-from monose3.method.estimator import Estimate
-from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
+from monose3.estimator import Estimate
 from monose3.report.overlays import save_animation
 from monose3.robot.jobs import RenderJob
+from monose3.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 
 SIZE = (160, 120)
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])

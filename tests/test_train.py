@@ -253,7 +253,7 @@ def test_torchrun_two_processes_gloo(tiny_dream, tmp_path):
     + [("flow-solve", "6d", "efficientnet-lite0")],
 )
 def test_every_design_trains_and_estimates(frames, design, rotation_output, backbone):
-    from monose3.method.estimator import PoseEstimator
+    from monose3.estimator import PoseEstimator
 
     config = with_section(tiny_config(rot_weight=3.0), "network", design=design, rotation_output=rotation_output)
     config = with_section(config, "network", backbone=backbone)

@@ -14,7 +14,7 @@ import yaml
 from monose3 import atomic
 from monose3.data import validation
 from monose3.errors import Monose3Error
-from monose3.method.estimator import UNRELIABLE_MM, Estimate, PoseEstimator
+from monose3.estimator import UNRELIABLE_MM, Estimate, PoseEstimator
 from monose3.report.overlays import pose_overlays
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import load_model, load_parser

@@ -29,6 +29,7 @@ import numpy as np
 from monose3.atomic import json_number
 from monose3.data.frames import load_images, skipped_annotations
 from monose3.errors import Monose3Error
+from monose3.estimator import UNRELIABLE_MM
 from monose3.geometry.averaging import (
     CONSENSUS_K,
     CONSENSUS_MIN_DEG,
@@ -38,7 +39,6 @@ from monose3.geometry.averaging import (
     robust_pose_average,
 )
 from monose3.geometry.rotations import matrix_to_quat_xyzw
-from monose3.method.estimator import UNRELIABLE_MM
 from monose3.report.metrics import add_per_frame
 from monose3.report.overlays import image_grid, pose_overlays
 from monose3.robot import RobotModel

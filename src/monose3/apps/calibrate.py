@@ -4,7 +4,7 @@
 1. estimate every frame (batched; ``chains`` > 1 runs that many stochastic reverse chains per
    frame, whose disagreement measures the frame's uncertainty);
 2. reject frames whose estimate puts the robot outside the image ("out of view") and, with
-   several chains, those whose chains disagree by more than ``method.estimator.UNRELIABLE_MM``
+   several chains, those whose chains disagree by more than ``estimator.UNRELIABLE_MM``
    ("unreliable chains");
 3. fuse the rest robustly (:mod:`monose3.geometry.averaging`: geodesic L1 median of the rotations,
    geometric median of the translations), reject frames whose translation or rotation lies

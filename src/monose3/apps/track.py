@@ -1,7 +1,7 @@
 """``monose3 track``: the pose over a sequence, one cheap step per frame (the paper's tracking).
 
 The policy (full estimate first, then one step per frame, re-initialised on loss, jumps and
-periodically) is :mod:`monose3.method.tracking`'s, shared with ``monose3 evaluate --sampler tracking``.
+periodically) is :mod:`monose3.tracking`'s, shared with ``monose3 evaluate --sampler tracking``.
 
 Inputs: ``--frames DIR`` (a DREAM folder, whose ground truth gives the ADD of every frame, or
 the plain folder of ``monose3 calibrate``: ``NNNN.png`` + ``NNNN.joints.json`` + ``camera.json``),
@@ -59,10 +59,10 @@ from monose3.data.frames import (
 from monose3.data.inputs import load_camera
 from monose3.data.video import video_frames
 from monose3.errors import Monose3Error
-from monose3.method.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 from monose3.report.metrics import FAILURE_MM
 from monose3.report.overlays import pose_overlays, save_animation
 from monose3.robot import RobotModel
+from monose3.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 from monose3.training.formats import check_checkpoint
 
 
@@ -189,7 +189,7 @@ def track_sequence(
 ) -> list[TrackFrame]:
     """Track the camera-from-base pose over ``frames_iter`` (objects with ``name``, ``K``,
     ``joints``, ``load_image()``; with ``keypoints_3d`` the ADD is filled in) with the shared
-    :class:`~monose3.method.tracking.Tracker` and ``policy``.
+    :class:`~monose3.tracking.Tracker` and ``policy``.
 
     ``on_frame(frame, image, result)`` is called after each frame (for streaming output and
     overlays without keeping the images). Returns one :class:`TrackFrame` per usable frame; a

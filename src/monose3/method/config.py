@@ -37,7 +37,7 @@ class DiffusionConfig:
 DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve")  # classes: monose3.method.designs
 FIELD_STRIDES = (4, 8)
 # The denoiser's trunks: ResNets from scratch, or EfficientNet-Lite0 with its ImageNet weights
-# (monose3.perception.backbone), which only the designs that compare through cost volumes take.
+# (monose3.networks.backbone), which only the designs that compare through cost volumes take.
 BACKBONES = ("resnet18", "resnet34", "efficientnet-lite0")
 PRETRAINED_TRUNK_DESIGNS = ("cost-volume", "flow-solve")
 # The crop leaves the robot a margin of (1 - 1 / 1.4) / 2 = 14 % of its size on each side

@@ -56,16 +56,16 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from monose3.geometry.camera import project
+from monose3.geometry.pose_solve import solve_pose
 from monose3.geometry.poses import transform_points
 from monose3.geometry.rotations import rotation_angle
-from monose3.method.flow_pose import solve_pose
 from monose3.perception.edges import edge_agreement, edge_terms, inner_edge_support, inner_edge_terms
+from monose3.perception.fit_result import Fit
 from monose3.perception.hypotheses import DENSE_AZIMUTHS, DENSE_ELEVATIONS, pnp_hypotheses, sphere_hypotheses
 from monose3.perception.local_search import DEFAULT_SEARCH, SearchConfig, search_locally
 from monose3.perception.parser import RobotParser
@@ -115,24 +115,6 @@ INNER_SUPPORT_SCORE = 0.5
 KEYPOINT_ERROR_CAP = 0.1  # fraction of the view's width
 KEYPOINT_SCALE = 0.02  # Cauchy scale of keypoint residuals in the refinement, fraction of the view's width
 CONVERGED_MM, CONVERGED_DEG = 0.2, 0.02
-
-
-@dataclass
-class Fit:
-    """One image's result: the pose (camera-from-base), its fit and the view it was fitted in."""
-
-    pose: np.ndarray
-    iou: float
-    keypoint_error: float  # mean reprojection error of confident keypoints, view pixels
-    score: float
-    view: ViewEvidence
-    candidates: np.ndarray  # [H, 4, 4] the refined hypotheses (with the restarts: the two), best first
-    edge_support: float = 0.0  # share of the pose's outline on the image's own edges, [0, 1]
-    edge_distance_px: float = math.inf  # RMS distance of the outline to the image's edges, view pixels
-    spread_mm: float = 0.0  # mean keypoint distance of the other candidates (the other restart) to the pose
-    inner_support: float = math.nan  # how well the render's inner edges lie on the image's, [0, 1]; NaN: not measured
-    found: bool = True
-    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
 
 
 def keypoint_distances(poses: np.ndarray, keypoints_base: np.ndarray, view: ViewEvidence) -> np.ndarray:

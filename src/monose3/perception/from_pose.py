@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 
 from monose3.geometry.camera import project
+from monose3.perception.fit_result import Fit
 from monose3.perception.fitting import (
     MIN_MASK_FRACTION,
-    Fit,
     best_fit,
     best_hypotheses,
     not_found,

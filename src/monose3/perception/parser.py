@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monose3.perception.backbone import FEATURE_CHANNELS, EfficientNetLite0, pretrained_lite0
+from monose3.networks.backbone import FEATURE_CHANNELS, EfficientNetLite0, pretrained_lite0
 from monose3.perception.config import ParserConfig
 
 OUTPUT_STRIDE = 2

@@ -11,17 +11,14 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from monose3.geometry.camera import project
 from monose3.geometry.poses import transform_points
+from monose3.perception.fit_result import Fit
 from monose3.robot import RobotModel
-
-if TYPE_CHECKING:
-    from monose3.perception.fitting import Fit
 
 
 @dataclass(frozen=True)

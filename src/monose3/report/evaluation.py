@@ -18,11 +18,11 @@ from tqdm import tqdm
 from monose3 import atomic
 from monose3.data.frames import load_images, skipped_annotations
 from monose3.errors import Monose3Error
-from monose3.method.estimator import Estimate, PoseEstimator
-from monose3.method.tracking import Tracker, TrackStep
+from monose3.estimator import Estimate, PoseEstimator
 from monose3.report.metrics import add_per_frame, summarize
 from monose3.report.overlays import denoising_strip
 from monose3.robot.jobs import RenderJob
+from monose3.tracking import Tracker, TrackStep
 
 
 @dataclass
@@ -64,7 +64,7 @@ def evaluate_dataset(
     out for bad annotations); Monose3Error when no frame is usable.
 
     ``tracking``: frames are a sequence, estimated one at a time by the tracking policy that
-    ``monose3 track`` uses (:class:`~monose3.method.tracking.Tracker`: the full reverse process
+    ``monose3 track`` uses (:class:`~monose3.tracking.Tracker`: the full reverse process
     with ``sampler``/``ddim_steps``/``direct_steps`` first and on re-initialisation, one step
     from the previous estimate otherwise); each frame's record then has its ``mode`` and ``reason``.
     """

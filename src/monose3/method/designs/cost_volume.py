@@ -34,7 +34,7 @@ FINEST_RADIUS = 3  # flow-solve at field_stride 4: its stride-4 cost volume reac
 INITIAL_LOG_PRIOR = torch.tensor([7.0, 7.0, 7.5, 11.0, 11.0, 9.0])
 PRIOR_GAIN = 10.0  # the prior's log moves 10x faster than its weights, so Adam can move it by ~5 in 2000 steps
 INITIAL_FIELD_SCALE = 0.02  # flow-solve: the field's Laplace scale at init (render widths, ~ t 1-10's moves)
-PRETRAINED = BACKBONES[2]  # the ImageNet-pretrained trunk (monose3.perception.backbone)
+PRETRAINED = BACKBONES[2]  # the ImageNet-pretrained trunk (monose3.networks.backbone)
 
 
 def comparison_trunk(backbone: str, pretrained: bool = True) -> tuple[nn.Sequential, int, nn.Module, Callable]:
@@ -43,7 +43,7 @@ def comparison_trunk(backbone: str, pretrained: bool = True) -> tuple[nn.Sequent
     A ResNet's layers 1-3 from scratch, or EfficientNet-Lite0's stages 1-5 with their ImageNet
     weights (``pretrained``; off where a checkpoint's weights replace them at once)."""
     if backbone == PRETRAINED:
-        from monose3.perception.backbone import EfficientNetLite0, pretrained_lite0
+        from monose3.networks.backbone import EfficientNetLite0, pretrained_lite0
 
         to_4, to_8, to_16 = (pretrained_lite0() if pretrained else EfficientNetLite0()).pyramid()
         return nn.Sequential(to_4, to_8), 1, to_16, nn.Identity()  # its stem scales the input

@@ -1,6 +1,7 @@
-"""Inference (Alg. 2): RoboPose's initialisation, K timestep-aware DDIM steps (RevDiff),
-M direct-regression steps, the DirectReg baseline and 1-step tracking. Batched over images
-and hypotheses: one render batch and one network call per step."""
+"""The paper's pipeline (Alg. 2): RoboPose's initialisation, K timestep-aware DDIM steps
+(RevDiff, Eq. 8 through :class:`~monose3.method.scheduler.DDIMScheduler`), M direct-regression
+steps, the DirectReg baseline and 1-step tracking. Batched over images and hypotheses: one render
+batch and one network call per step. ``monose3.estimator.PoseEstimator`` offers it beside the fit."""
 
 from __future__ import annotations
 
@@ -13,7 +14,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from monose3.data.validation import check_batch, check_pose_batch
 from monose3.errors import Monose3Error
 from monose3.geometry.camera import project, standardize_image
 from monose3.geometry.poses import make_pose
@@ -25,10 +25,6 @@ from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
 from monose3.method.scheduler import DDIMScheduler
 from monose3.method.update import apply_update, raw_to_update
-from monose3.perception.fitting import Fit, fit_pose
-from monose3.perception.from_pose import track_pose
-from monose3.perception.parser import RobotParser
-from monose3.perception.reliability import fit_doubts, pose_in_view
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 
@@ -41,25 +37,16 @@ UNRELIABLE_MM = 30.0
 
 
 @dataclass
-class Estimate:
-    """Results for a batch of B images with H hypotheses each (poses are camera-from-base,
-    in the caller's original camera, metres)."""
+class Chains:
+    """The reverse process's result for B images with H chains each (camera-from-base, metres)."""
 
-    poses: np.ndarray  # [B, 4, 4] the chosen estimate (medoid of the hypotheses)
-    hypotheses: np.ndarray  # [B, H, 4, 4]
+    poses: np.ndarray  # [B, 4, 4] each image's medoid chain
+    hypotheses: np.ndarray  # [B, H, 4, 4] every chain's end
     in_view: np.ndarray  # [B] bool: the estimate keeps the robot's centroid in the image, in front
-    spread_mm: np.ndarray  # [B] mean keypoint distance of the hypotheses to the chosen one
-    spread_deg: np.ndarray  # [B] mean rotation angle of the hypotheses to the chosen one
+    spread_mm: np.ndarray  # [B] mean keypoint distance of the chains to the chosen one
+    spread_deg: np.ndarray  # [B] mean rotation angle of the chains to the chosen one
     history: list[np.ndarray] = field(default_factory=list)  # per step [B, H, 4, 4]
     timings: dict[str, float] = field(default_factory=dict)
-    # The "fit" sampler's (perception.fitting) fit per image; None for the paper's samplers.
-    fit_iou: np.ndarray | None = None  # [B] silhouette IoU of the estimate with the parser's mask
-    keypoint_px: np.ndarray | None = None  # [B] keypoint reprojection error, parser-view pixels
-    found: np.ndarray | None = None  # [B] bool: the parser found the robot (else the pose is NaN)
-    reliable: np.ndarray | None = None  # [B] bool: the fit is good and the robot mostly in the image
-    edge_support: np.ndarray | None = None  # [B] share of the estimate's outline on the image's edges
-    edge_distance_px: np.ndarray | None = None  # [B] RMS distance of that outline to the edges, parser-view pixels
-    doubts: list[list[str]] | None = None  # [B] why each estimate is unreliable, in words (empty: reliable)
 
 
 @dataclass
@@ -86,28 +73,18 @@ def check_steps(sampler: str, ddim_steps: int, direct_steps: int) -> None:
         raise Monose3Error("directreg needs at least one step (ddim_steps + direct_steps >= 1)")
 
 
-class PoseEstimator:
-    """A trained denoiser plus the batched renderer on the model's device, and optionally a
-    robot parser (the "fit" sampler, the default when there is one); call :meth:`estimate` or :meth:`track`."""
+class ReverseDiffusion:
+    """A trained denoiser, its scheduler and the batched renderer on the model's device; :meth:`run`
+    is Alg. 2 (or DirectReg) over a batch of images whose inputs were checked by the caller."""
 
-    def __init__(self, model: Denoiser, config: Config, device: str = "cpu", parser: RobotParser | None = None):
-        self.model = model.to(device).eval()
-        self.parser = None if parser is None else parser.to(device).eval()
+    def __init__(self, model: Denoiser, config: Config, robot: RobotModel, renderer: RobotRenderer):
+        self.model = model
         self.config = config
-        self.device = torch.device(device)
-        self.robot = RobotModel(config.robot)
+        self.robot = robot
+        self.renderer = renderer
+        self.device = renderer.device
         self.scheduler = DDIMScheduler(config.diffusion)
-        self.renderer = RobotRenderer(self.robot, self.device)
         self.timings: dict[str, float] = defaultdict(float)
-
-    @property
-    def default_sampler(self) -> str:
-        """ "fit" (parser + geometry) when the estimator has a parser, else the paper's "revdiff"."""
-        return "fit" if self.parser is not None else "revdiff"
-
-    def close(self) -> None:
-        """Free the renderer's cached mesh tensors (GPU memory when on CUDA)."""
-        self.renderer.release()
 
     # ---- inputs ---------------------------------------------------------------------------
 
@@ -146,8 +123,6 @@ class PoseEstimator:
         xy = (center - batch.K[:, :2, 2]) * z[:, None] / f
         return make_pose(rot, torch.cat([xy, z[:, None]], 1))
 
-    # ---- one network evaluation -----------------------------------------------------------
-
     @contextmanager
     def timed(self, key: str) -> Iterator[None]:
         """Add the seconds the block takes to ``self.timings[key]``."""
@@ -174,14 +149,14 @@ class PoseEstimator:
             v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
             return apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)
 
-    # ---- public API -----------------------------------------------------------------------
+    # ---- Alg. 2 -----------------------------------------------------------------------------
 
-    def estimate(
+    def run(
         self,
         images: list[np.ndarray],
         Ks: np.ndarray,
         joints: np.ndarray,
-        sampler: str | None = None,
+        sampler: str,
         ddim_steps: int | None = None,
         direct_steps: int | None = None,
         hypotheses: int = 1,
@@ -189,17 +164,10 @@ class PoseEstimator:
         seed: int = 0,
         init_poses: np.ndarray | None = None,
         start_t: int | None = None,
-    ) -> Estimate:
-        """Estimate camera-from-base for each image. ``sampler``: 'fit' (the robot parser, PnP,
-        silhouette scoring and refinement: :mod:`monose3.perception.fitting`; ``init_poses``
-        join its hypotheses), 'revdiff' (K DDIM + M direct steps, the paper) or 'directreg'
-        (K + M direct steps, the baseline); default :attr:`default_sampler`. ``stochastic``
-        adds DDIM's noise term and perturbs the initial poses (several chains -> uncertainty).
-        ``init_poses`` ``[B, 4, 4]`` replace RoboPose's initialisation (tracking)."""
-        images, Ks, joints = check_batch(images, Ks, joints, self.robot)  # Monose3Error, not a crash in roi_align
-        sampler = sampler or self.default_sampler
-        if sampler == "fit":
-            return self.fit(images, Ks, joints, init_poses)
+    ) -> Chains:
+        """'revdiff' (K DDIM + M direct steps, the paper) or 'directreg' (K + M direct steps, the
+        baseline) from RoboPose's initialisation or ``init_poses`` ``[B, 4, 4]``; ``stochastic``
+        adds DDIM's noise term and perturbs the starts (several chains -> uncertainty)."""
         inf = self.config.inference
         ddim_steps = inf.ddim_steps if ddim_steps is None else ddim_steps
         direct_steps = inf.direct_steps if direct_steps is None else direct_steps
@@ -215,7 +183,7 @@ class PoseEstimator:
             init = np.repeat(np.asarray(init_poses, np.float64), hypotheses, 0)
             pose = centroid_frame(torch.from_numpy(init), batch.centroid)
         if stochastic:
-            pose = self._perturb(pose, gen, start_t)
+            pose = self.perturb(pose, gen, start_t)
         history = [pose]
         if sampler == "revdiff":  # Alg. 2: K timestep-aware DDIM steps (Eq. 8) over the scheduler
             steps = self.scheduler.timesteps(ddim_steps, start_t)
@@ -233,79 +201,7 @@ class PoseEstimator:
         result.timings["total"] = time.perf_counter() - start
         return result
 
-    def fit(
-        self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, priors: np.ndarray | None = None,
-        track: bool = False,
-    ) -> Estimate:  # fmt: skip
-        """The "fit" sampler, image by image (``priors`` ``[B, 4, 4]`` join the hypotheses; with
-        ``track`` they are only refined, from a view around them: tracking)."""
-        if self.parser is None:
-            raise Monose3Error(
-                f"no robot parser for {self.robot.name}: the 'fit' sampler needs one (--parser FILE); "
-                "or use --sampler revdiff"
-            )
-        start = time.perf_counter()
-        fits = []
-        for i, (image, K, q) in enumerate(zip(images, Ks, joints, strict=True)):
-            prior = None if priors is None else np.asarray(priors[i], np.float64)
-            if track:
-                fits.append(track_pose(self.parser, self.renderer, self.robot, image, K, q, prior))
-            else:
-                extra = None if prior is None else prior[None]
-                fits.append(fit_pose(self.parser, self.renderer, self.robot, image, K, q, extra))
-        return self._fit_estimate(fits, images, Ks, joints, time.perf_counter() - start)
-
-    def _fit_estimate(self, fits: list[Fit], images, Ks, joints, seconds: float) -> Estimate:
-        poses = np.stack([f.pose for f in fits])
-        hyps = max(1, max(len(f.candidates) for f in fits))
-        candidates = np.full((len(fits), hyps, 4, 4), np.nan)
-        for i, f in enumerate(fits):
-            candidates[i, : len(f.candidates)] = f.candidates
-        found = np.array([f.found for f in fits])
-        views = list(zip(poses, joints, Ks, [img.shape for img in images], strict=True))
-        in_view = found & np.array([pose_in_view(self.robot, *v) for v in views])
-        doubts = [fit_doubts(fit, self.robot, *v[1:]) for fit, v in zip(fits, views, strict=True)]
-        return Estimate(
-            poses=poses,
-            hypotheses=candidates,
-            in_view=in_view,
-            spread_mm=np.array([f.spread_mm for f in fits]),
-            spread_deg=np.zeros(len(fits)),
-            history=[candidates],
-            timings={"total": seconds},
-            fit_iou=np.array([f.iou for f in fits]),
-            keypoint_px=np.array([f.keypoint_error for f in fits]),
-            found=found,
-            reliable=in_view & np.array([not reasons for reasons in doubts]),
-            edge_support=np.array([f.edge_support for f in fits]),
-            edge_distance_px=np.array([f.edge_distance_px for f in fits]),
-            doubts=doubts,
-        )
-
-    def track(
-        self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, previous: np.ndarray,
-        sampler: str | None = None,
-    ) -> Estimate:  # fmt: skip
-        """Tracking: from the previous estimates, the paper's one step at a small t
-        (``sampler`` 'revdiff'), or a few refinement iterations on a parser view around them ('fit')."""
-        images, Ks, joints = check_batch(images, Ks, joints, self.robot)
-        previous = check_pose_batch(previous, len(images), "previous pose")
-        if (sampler or self.default_sampler) == "fit":
-            return self.fit(images, Ks, joints, previous, track=True)
-        return self.estimate(
-            images,
-            Ks,
-            joints,
-            sampler="revdiff",
-            ddim_steps=1,
-            direct_steps=0,
-            init_poses=previous,
-            start_t=self.config.inference.tracking_t,
-        )
-
-    # ---- helpers --------------------------------------------------------------------------
-
-    def _perturb(self, pose: torch.Tensor, gen: torch.Generator, start_t: int | None) -> torch.Tensor:
+    def perturb(self, pose: torch.Tensor, gen: torch.Generator, start_t: int | None) -> torch.Tensor:
         """Spread the chains' starts: 0.15 rad per axis and 5 % of the translation from t = T,
         shrunk like the forward process's noise std sqrt(1 - alpha_bar_t) when the chains start
         lower (refining a prior), so a good prior is not thrown further than the noise at t."""
@@ -319,8 +215,8 @@ class PoseEstimator:
         out[:, :3, 3] = pose[:, :3, 3] * (1 + 0.05 * scale * torch.randn(n, 3, generator=gen, dtype=pose.dtype))
         return out
 
-    def finish(self, batch: PreparedBatch, history: list[torch.Tensor], n_images: int, hyps: int) -> Estimate:
-        """The :class:`Estimate` of the poses ``history`` (camera-from-centroid, per step): each
+    def finish(self, batch: PreparedBatch, history: list[torch.Tensor], n_images: int, hyps: int) -> Chains:
+        """The :class:`Chains` of the poses ``history`` (camera-from-centroid, per step): each
         image's medoid hypothesis, the spread of its hypotheses and whether it is in view."""
         to_base = [base_frame(p, batch.centroid).numpy().reshape(n_images, hyps, 4, 4) for p in history]
         final = to_base[-1]
@@ -339,7 +235,7 @@ class PoseEstimator:
         uv = project(ref[:, None, :3, 3], batch.K[::hyps])[:, 0]
         size = batch.size[::hyps]
         in_view = (ref[:, 2, 3] > 0) & (uv >= -0.5).all(1) & (uv <= size - 0.5).all(1)
-        return Estimate(
+        return Chains(
             poses=poses,
             hypotheses=final,
             in_view=in_view.numpy(),

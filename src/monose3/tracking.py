@@ -25,7 +25,7 @@ from monose3.geometry.rotations import rotation_angle
 from monose3.robot import RobotModel
 
 if TYPE_CHECKING:  # the estimator imports torch; the policy's constants are read by the torch-free options
-    from monose3.method.estimator import Estimate
+    from monose3.estimator import Estimate
 
 # A 1-step update that moves the robot more than this between two frames is not trusted.
 MAX_STEP_MM = 50.0
