@@ -1,4 +1,4 @@
-"""Denoiser designs side by side (issue 11): which one learns to *compare* render and crop?
+"""Denoiser designs side by side: which one learns to *compare* render and crop?
 
 Every candidate (``NetworkConfig.design``, see ``monose3.method.config.DESIGNS``) trains on the
 same fixed pool of training samples, in the same order, for the same number of samples, on
@@ -31,7 +31,7 @@ clean synthetic scenes, the second with H_0 given H_t's translation, so render a
 differ by a rotation alone: the sanity task of whether rotation is learnable at all
 (docs/DESIGNS.md).
 
-Models trained elsewhere (e.g. ``monose3 train --synthetic --design D`` on a lent GPU) are
+Models trained elsewhere (e.g. ``monose3 train --synthetic --design D`` on a GPU) are
 judged the same way with ``--weights RUN...`` (run folders or checkpoints), on a held-out
 pool of the same preset (``--preset``; ``--held-data synthetic`` draws it on the fly).
 """
@@ -390,7 +390,7 @@ def _samples_seen(path: str) -> int:
 
 
 def verdict(result: dict, identity: dict) -> dict[str, bool]:
-    """Issue 11's targets: render ablation raises xy and rot by >= 30 %; rot below identity in every bucket."""
+    """The design study's targets: render ablation raises xy and rot by >= 30 %; rot below identity in every bucket."""
     last = result["curve"][-1]["buckets"]
     abl = result["ablation_pct"]
     return {

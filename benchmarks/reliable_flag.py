@@ -13,7 +13,7 @@ never saw). The frames must not be the held-out sets the README reports on
 (``benchmarks/accuracy.py`` measures the flag there). ``--check`` measures the flag as shipped,
 with 95 % (Wilson) intervals, on frames that had no part in choosing it.
 
-The model shipped (``reliability.FLAG_MODEL``, the eighteenth session) was fitted on the 1,200
+The model shipped (``reliability.FLAG_MODEL``, 2026-12-07 (7abde53)) was fitted on the 1,200
 hard frames of seeds 7007, 9009, 11011 and 13013 for 93 % recall; their features, as
 ``frame_features`` gives them with one thread (made by a script over chunks of 25 frames), are
 in ``docs/results/reliable_flag_features.json``. There it flags 93.4 % of the 227 bad estimates
@@ -23,12 +23,12 @@ here for 91 % and then 94 % recall on seeds 3003-12012 (their features in
 ``reliable_flag_choice.json``, ``reliable_flag.json``, ``reliable_flag_check2.json`` and
 ``reliable_flag_check3.json``, which lack the inner edges' support); on frames generated after
 each choice they kept falling below 90 % recall or above 10 % false alarms on hard frames
-(docs/ACCURACY.md has each session's figures). The model's inner edges' support is what cut
+(docs/ACCURACY.md has the figures by date). The model's inner edges' support is what cut
 the false alarms: the same model without it, 91.6 % with 8.8 %. Checked on 400 frames generated
 after (seeds 15015 hard, 16016 reallike; ``docs/results/reliable_flag_check4.json``, by the same
 script): hard 45 of 52 bad caught (86.5 %) with 12 false alarms of 248 (4.8 %), where the
 thresholds before catch 47 (90.4 %) with 16 (6.5 %); reallike none of 100 flagged. Checked
-again on 300 hard frames of seed 17017 (the nineteenth session; ``reliable_flag_check5.json``):
+again on 300 hard frames of seed 17017 (2026-12-07 (1a4a174); ``reliable_flag_check5.json``):
 43 of 47 bad caught (91.5 %) with 10 false alarms of 253 (4.0 %). Fitted again on the 1,500
 hard frames of seeds 7007-15015 and the 100 reallike ones (the last command below) it caught one
 more of them with 19 false alarms (each seed by the others: 92.1 % recall with 8.9 % false

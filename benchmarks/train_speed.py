@@ -34,7 +34,7 @@ from monose3.method.designs import build_denoiser
 from monose3.training.loop import BatchMaker, Sources
 from monose3.training.objective import train_step
 
-GPU_GOAL = {"paper": 3000.0}  # samples/s on one H100 (issue: training that fills a lent GPU)
+GPU_GOAL = {"paper": 3000.0}  # samples/s on one H100 (the goal: training that fills a GPU)
 
 
 def _sync(device: torch.device) -> None:

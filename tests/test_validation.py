@@ -1,4 +1,4 @@
-"""One validation layer for the Python API and the commands (issue 15): every bad input is
+"""One validation layer for the Python API and the commands: every bad input is
 refused the same way (a one-line Monose3Error / exit code 2, before the model loads), every
 documented joint layout is accepted, and a bad input never reaches torch."""
 

@@ -1,7 +1,7 @@
 """Model weights as shards that travel: half-precision files of at most 16 MiB each plus a
 small ``weights.json`` (configuration, step, samples seen, loss parts, each shard's SHA-256).
 
-A lent GPU machine returns at most 8 files of 16 MiB per call, so a training run writes its
+A remote GPU machine may return only a few files of at most 16 MiB per call, so a training run writes its
 weights this way every minute; ``monose3 train --init`` and ``--checkpoint`` read them back.
 Each save writes new shard files named by the step, then the JSON atomically, then removes
 the previous shards: a run killed at any moment leaves one consistent set.
@@ -22,7 +22,7 @@ from monose3.errors import Monose3Error
 from monose3.training.formats import SHARD_INDEX as INDEX
 
 FORMAT = "monose3-shards-v1"
-SHARD_BYTES = 15 * 2**20  # under the 16 MiB a lent machine returns per file, with room for pickling
+SHARD_BYTES = 15 * 2**20  # under 16 MiB per file (what a remote machine returns), with room for pickling
 
 
 def _serialise(tensors: dict[str, torch.Tensor]) -> bytes:
