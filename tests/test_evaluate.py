@@ -8,13 +8,13 @@ from conftest import TINY_NET, save_tiny_checkpoint
 
 from monose3.api import load_estimator
 from monose3.apps.cli import main
-from monose3.apps.track import track_sequence
 from monose3.data.datasets import open_dataset
 from monose3.estimator import PoseEstimator
 from monose3.method.config import get_preset
 from monose3.method.designs import build_denoiser
 from monose3.report.evaluation import evaluate_dataset
 from monose3.report.metrics import add_per_frame
+from monose3.report.sequences import track_sequence
 from monose3.tracking import MODE_FULL
 
 

@@ -12,13 +12,14 @@ import pytest
 from conftest import look_at
 
 from monose3.apps.cli import main
-from monose3.apps.track import load_joints_csv, load_joints_dir, track_sequence
+from monose3.apps.track import load_joints_csv, load_joints_dir
 from monose3.data.dream_writer import write_frame
 from monose3.data.frame import Frame
 from monose3.data.video import read_video, video_frames
 from monose3.errors import Monose3Error
 from monose3.estimator import Estimate
 from monose3.report.overlays import save_animation
+from monose3.report.sequences import track_sequence
 from monose3.robot.jobs import RenderJob
 from monose3.tracking import MAX_STEP_DEG, MAX_STEP_MM, MODE_FULL, MODE_TRACK, Tracker, TrackingPolicy
 
@@ -167,7 +168,8 @@ def test_track_cli_on_dream_folder(dream_dir, checkpoint, tmp_path, capsys):
     rc = main([*argv, "--out", str(out)])
     assert rc == 0
     printed = capsys.readouterr().out
-    assert "ADD vs ground truth" in printed and f"frames: {N}; full: 1 (1 first); track: {N - 1}" in printed
+    assert "ADD vs ground truth" in printed and f"frames: {N}; full estimates run: 1 (1 first)" in printed
+    assert f"poses from full 1, track {N - 1}, fused 0" in printed
     lines = [json.loads(line) for line in (out / "poses.jsonl").read_text().splitlines()]
     assert [d["mode"] for d in lines] == ["full"] + ["track"] * (N - 1)
     assert [d["frame"] for d in lines] == [f"{i:06d}" for i in range(N)]
@@ -176,7 +178,9 @@ def test_track_cli_on_dream_folder(dream_dir, checkpoint, tmp_path, capsys):
         assert np.allclose(pose[3], [0, 0, 0, 1]) and np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
         assert d["add_mm"] is not None and d["add_mm"] > 0
     csv_rows = (out / "poses.csv").read_text().splitlines()
-    assert len(csv_rows) == N + 1 and csv_rows[0].startswith("index,frame,mode,reason,in_view,m00")
+    assert len(csv_rows) == N + 1 and csv_rows[0].startswith(
+        "index,frame,mode,reason,in_view,confidence,reliable,doubts,m00"
+    )
     gif = iio.imread(out / "track.gif", index=None)
     assert gif.shape[0] == N
 
@@ -269,3 +273,31 @@ def test_video_input_errors(sequence, models, checkpoint, tmp_path, capsys):
         assert main(base + extra) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("monose3 track: error:") and message in err and "\n" not in err, err
+
+
+def test_track_option_and_static_camera_errors_write_nothing(dream_dir, sequence, models, checkpoint, tmp_path, capsys):
+    """--refine-at-end alone, a bad --recheck-every, an unreadable video, and under --static-camera a
+    folder whose frames come from different cameras: one line each, exit 2, no output folder."""
+    mixed, (joints, images) = tmp_path / "mixed", sequence
+    for i in range(2):  # the second frame's camera zoomed by 10 %
+        write_frame(mixed, i, images[i], K * [[1.0 + 0.1 * i], [1.0 + 0.1 * i], [1.0]], joints[i], POSE)
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"not a video")
+    names = models["panda"].required_joints
+    csv_path = tmp_path / "joints.csv"
+    csv_path.write_text("frame," + ",".join(names) + "\n0," + ",".join("0.0" for _ in names) + "\n")
+    camera = tmp_path / "camera.json"
+    camera.write_text(json.dumps({"fx": 150, "fy": 150, "cx": 79.5, "cy": 59.5, "width": 160, "height": 120}))
+    out = tmp_path / "out"
+    base = ["track", "--checkpoint", str(checkpoint), "--out", str(out)]
+    cases = [
+        (["--frames", str(dream_dir), "--refine-at-end"], "--refine-at-end goes with --static-camera"),
+        (["--frames", str(dream_dir), "--recheck-every", "0"], "--recheck-every"),
+        (["--frames", str(mixed), "--static-camera"], "another intrinsics than frame"),
+        (["--video", str(broken), "--joints-csv", str(csv_path), "--camera", str(camera)], "video"),
+    ]
+    for extra, message in cases:
+        assert main(base + extra) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("monose3 track: error:") and message in err and "\n" not in err, err
+        assert not out.exists(), extra

@@ -26,6 +26,8 @@ _PUBLIC = {
     "PoseResult": "monose3.api",
     "PoseEstimator": "monose3.estimator",
     "Estimate": "monose3.estimator",
+    "Tracker": "monose3.tracking",
+    "TrackingPolicy": "monose3.tracking",
     "Config": "monose3.method.config",
     "get_preset": "monose3.method.config",
     "calibrate": "monose3.calibration",

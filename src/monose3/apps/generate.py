@@ -35,6 +35,12 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true", help="keep the frames already in --out, make the rest")
     parser.add_argument("--preview", type=Path, help="also save a grid of the first 12 frames with keypoints here")
     parser.add_argument(
+        "--sequence",
+        choices=("static", "moving"),
+        help="one sequence of --num frames instead of independent ones: a static or slowly orbiting camera, "
+        "the robot moving smoothly (for tracking)",
+    )
+    parser.add_argument(
         "--renderer",
         choices=RENDERERS,
         default="torch",
@@ -54,6 +60,10 @@ def check_generate(args: argparse.Namespace) -> None:
         v.check_input_dir(args.backgrounds, "--backgrounds")
     if args.preview is not None:
         v.check_output_file(args.preview, "--preview", (".png", ".jpg", ".jpeg"))
+    if args.sequence and args.num < 2:
+        raise Monose3Error(f"--sequence needs --num 2 or more frames, got {args.num}")
+    if args.sequence and args.resume:
+        raise Monose3Error("--resume is for independent frames; a --sequence is written whole (run it again)")
 
 
 def run_generate(args: argparse.Namespace) -> int:
@@ -66,20 +76,35 @@ def run_generate(args: argparse.Namespace) -> int:
             raise Monose3Error("a custom robot needs both --urdf and --keypoints")
         robot = spec_from_files(args.urdf, args.keypoints)
     start = time.perf_counter()
-    out = generate_dataset(
-        args.out,
-        args.num,
-        args.seed,
-        robot,
-        args.workers,
-        args.profile,
-        args.backgrounds,
-        args.size,
-        resume=args.resume,
-        backend=args.renderer,
-    )
+    if args.sequence:
+        out = _write_sequence(args, robot)
+    else:
+        out = generate_dataset(
+            args.out,
+            args.num,
+            args.seed,
+            robot,
+            args.workers,
+            args.profile,
+            args.backgrounds,
+            args.size,
+            resume=args.resume,
+            backend=args.renderer,
+        )
     elapsed = time.perf_counter() - start
     print(f"wrote {args.num} frames to {out} in {elapsed:.1f} s ({args.num / max(elapsed, 1e-9):.1f} frames/s)")
     if args.preview:
         print(f"preview: {save_preview_grid(out, args.preview, robot=robot)}")
     return 0
+
+
+def _write_sequence(args: argparse.Namespace, robot):
+    """``--sequence``: one sequence of ``--num`` frames (:mod:`monose3.data.scenes.sequences`)."""
+    import torch
+
+    from monose3.data.scenes.appearance import load_photos
+    from monose3.data.scenes.sequences import SequenceConfig, write_sequence
+
+    photos = load_photos(args.backgrounds, torch.device("cpu"), bundled=False) if args.backgrounds else None
+    config = SequenceConfig(frames=args.num, camera=args.sequence)
+    return write_sequence(args.out, config, args.seed, robot, args.profile, args.size, args.renderer, photos)

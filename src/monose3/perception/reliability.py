@@ -209,6 +209,9 @@ NUMBER_WORDS = {
 }
 
 
+TRACKED_SPREAD_WORDS = "moved {:.0f} mm from the previous frame's pose"  # a tracked fit's spread
+
+
 def _shown(name: str, value: float) -> float:
     return 100 * value if name in ("support", "inside", "inner_support") else value  # shares in words are percentages
 
@@ -234,7 +237,8 @@ def fit_doubts(fit: Fit, robot: RobotModel, joints: np.ndarray, K: np.ndarray, i
                        f" > {MAX_DEPTH_PER_PIXEL_MM:g} mm: too small to fix its distance")  # fmt: skip
     odds = float(model.odds(numbers))
     if odds >= model.threshold:
-        causes = " and ".join(NUMBER_WORDS[k].format(_shown(k, numbers[k])) for k in model.causes(numbers))
+        words = {**NUMBER_WORDS, "spread": TRACKED_SPREAD_WORDS} if fit.tracked else NUMBER_WORDS
+        causes = " and ".join(words[k].format(_shown(k, numbers[k])) for k in model.causes(numbers))
         reasons.append(f"{100 * odds:.0f} % odds of an error over {BAD_MM:g} mm ({100 * model.threshold:.0f} % flags)"
                        + (f", mostly for its {causes}" if causes else ""))  # fmt: skip
     return reasons

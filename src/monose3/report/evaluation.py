@@ -84,10 +84,12 @@ def evaluate_dataset(
         step = tracker.update(images[0], Ks[0], joints[0]) if tracker is not None else None
         est = step.estimate if step is not None else estimator.estimate(images, Ks, joints, **full)
         result.seconds += time.perf_counter() - tick
-        pred = estimator.robot.keypoints(joints, est.poses)
+        poses = est.poses if step is None else step.camera_from_base[None]
+        in_view = est.in_view if step is None else np.array([step.in_view])
+        pred = estimator.robot.keypoints(joints, poses)
         gt = np.stack([f.keypoints_3d for f in batch])
         adds = add_per_frame(pred, gt)
-        adds[~est.in_view] = np.inf
+        adds[~in_view] = np.inf
         for j, frame in enumerate(batch):
             result.adds.append(float(adds[j]))
             result.frames.append(frame_record(frame, float(adds[j]), est, j, step))
@@ -121,8 +123,8 @@ def frame_record(frame, add: float, est: Estimate, j: int, step: TrackStep | Non
     record = {
         "frame": frame.name,
         "add_m": atomic.json_number(add),
-        "camera_from_base": est.poses[j].tolist(),
-        "in_view": bool(est.in_view[j]),
+        "camera_from_base": (est.poses[j] if step is None else step.camera_from_base).tolist(),
+        "in_view": bool(est.in_view[j] if step is None else step.in_view),
     }
     if est.fit_iou is not None:
         record.update(silhouette_iou=float(est.fit_iou[j]), keypoint_px=float(est.keypoint_px[j]),
@@ -130,7 +132,8 @@ def frame_record(frame, add: float, est: Estimate, j: int, step: TrackStep | Non
                       edge_distance_px=atomic.json_number(est.edge_distance_px[j]),
                       doubts=est.doubts[j])  # fmt: skip
     if step is not None:
-        record.update(mode=step.mode, reason=step.reason)
+        record.update(mode=step.mode, reason=step.reason, confidence=atomic.json_number(step.confidence),
+                      reliable=step.reliable, doubts=step.doubts)  # fmt: skip
     return record
 
 
