@@ -74,8 +74,9 @@ def test_timestep_embedding_is_sinusoidal():
 def test_each_design_starts_as_identity_and_learns_from_the_render(design):
     torch.manual_seed(0)
     net = build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design=design))
-    render = torch.rand(4, 3, 48, 64, requires_grad=True)
-    crop, t = torch.rand(4, 3, 48, 64), torch.tensor([1, 5, 50, 90])
+    c = net.channels
+    render = torch.rand(4, c, 48, 64, requires_grad=True)
+    crop, t = torch.rand(4, c, 48, 64), torch.tensor([1, 5, 50, 90])
     h_t, h_0, K = random_poses(4, 5), random_poses(4, 6), crop_K(4)
     surface = slab_surface((64, 48), h_t, K)
     # A zero head: the identity update at init (Eq. 9 with v_xy = 0, dR = I, v_z = 1).
@@ -122,7 +123,8 @@ def test_every_design_round_trips_through_a_checkpoint(design, tmp_path):
         for p in net.parameters():
             p.add_(torch.randn_like(p) * 0.01)
     net.eval()
-    render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([4, 60])
+    c = net.channels
+    render, crop, t = torch.rand(2, c, 48, 64), torch.rand(2, c, 48, 64), torch.tensor([4, 60])
     surface = slab_surface((64, 48))
     save_checkpoint(tmp_path / "m.pt", {"model": net.state_dict(), "config": config.to_dict(), "step": 1})
     loaded, loaded_config = load_model(tmp_path / "m.pt")

@@ -10,17 +10,20 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
 from monose3.data.validation import check_batch, check_pose_batch
 from monose3.errors import Monose3Error
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser
+from monose3.method.evidence import Evidence
 from monose3.method.reverse import UNRELIABLE_MM, Chains, ReverseDiffusion
 from monose3.perception.fit_result import Fit
 from monose3.perception.fitting import fit_pose
-from monose3.perception.from_pose import track_pose
+from monose3.perception.from_pose import judge_poses, track_pose
 from monose3.perception.parser import RobotParser
 from monose3.perception.reliability import fit_doubts, pose_in_view
+from monose3.perception.views import MIN_MASK_FRACTION, ViewEvidence, parse_image
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 
@@ -47,11 +50,32 @@ class Estimate:
     edge_support: np.ndarray | None = None  # [B] share of the estimate's outline on the image's edges
     edge_distance_px: np.ndarray | None = None  # [B] RMS distance of that outline to the edges, parser-view pixels
     doubts: list[list[str]] | None = None  # [B] why each estimate is unreliable, in words (empty: reliable)
+    fit_score: np.ndarray | None = (
+        None  # [B] the fit's score (IoU, keypoints, edges: fitting.best_fit); higher fits better
+    )
 
     @classmethod
     def of_chains(cls, chains: Chains) -> Estimate:
         """The paper's samplers' result (no fit numbers: the chains' spread is their confidence)."""
         return cls(**vars(chains))
+
+
+def evidence_of(views: list[ViewEvidence], image_sizes: list[tuple[int, int]], input_size: tuple[int, int]) -> Evidence:
+    """The parser's views of B images (``image_sizes`` (w, h) each) as the evidence denoiser reads
+    them: in the standardised image of ``input_size`` (padded right/bottom to its aspect, then
+    resized: :func:`~monose3.geometry.camera.standardize_image`), edge coordinates scaled alike."""
+    boxes, keypoints = [], []
+    for view, (w, h) in zip(views, image_sizes, strict=True):
+        scale = input_size[0] / max(w, round(h * input_size[0] / input_size[1]))
+        per_pixel = (view.box[2:] - view.box[:2]) / np.array(view.size)
+        boxes.append(view.box * scale)
+        keypoints.append((view.box[:2] + (view.keypoints + 0.5) * per_pixel) * scale - 0.5)
+    return Evidence(
+        mask=torch.stack([view.mask.float() for view in views])[:, None],
+        box=torch.from_numpy(np.stack(boxes)),
+        keypoints=torch.from_numpy(np.stack(keypoints)),
+        confidence=torch.from_numpy(np.stack([view.confidence for view in views]).astype(np.float32)),
+    )
 
 
 class PoseEstimator:
@@ -111,10 +135,27 @@ class PoseEstimator:
         sampler = sampler or self.default_sampler
         if sampler == "fit":
             return self.fit(images, Ks, joints, init_poses)
-        chains = self.reverse.run(
-            images, Ks, joints, sampler, ddim_steps, direct_steps, hypotheses, stochastic, seed, init_poses, start_t
-        )
-        return Estimate.of_chains(chains)
+        views = self.parse(images, Ks) if self.reverse.model.inputs == "parser" else None
+        evidence = None if views is None else evidence_of(views, [im.shape[1::-1] for im in images], self.input_size)
+        chains = self.reverse.run(images, Ks, joints, sampler, ddim_steps, direct_steps, hypotheses, stochastic, seed,
+                                  init_poses, start_t, evidence)  # fmt: skip
+        result = Estimate.of_chains(chains)
+        if views is not None:
+            result.found = np.array([view.robot_fraction >= MIN_MASK_FRACTION for view in views])
+            result.in_view &= result.found
+        return result
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        return self.config.network.input_size
+
+    def parse(self, images: list[np.ndarray], Ks: np.ndarray) -> list[ViewEvidence]:
+        """The robot parser's view of each image (whole, then zoomed on the robot: ``views.parse_image``)."""
+        if self.parser is None:
+            raise Monose3Error(
+                f"no robot parser for {self.robot.name}: the evidence denoiser reads its evidence (--parser FILE)"
+            )
+        return [parse_image(self.parser, image, K) for image, K in zip(images, Ks, strict=True)]
 
     def fit(
         self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, priors: np.ndarray | None = None,
@@ -163,6 +204,22 @@ class PoseEstimator:
             edge_support=np.array([f.edge_support for f in fits]),
             edge_distance_px=np.array([f.edge_distance_px for f in fits]),
             doubts=doubts,
+            fit_score=np.array([f.score for f in fits]),
+        )
+
+    def judge(self, image: np.ndarray, K: np.ndarray, joints: np.ndarray, poses: np.ndarray) -> Estimate:
+        """How well each of ``poses`` ``[N, 4, 4]`` fits one image as it stands (nothing is refined):
+        all fitted to the same parser view, so their ``fit_score``, ``fit_iou`` and ``reliable``
+        compare (:func:`~monose3.perception.from_pose.judge_poses`). Needs the robot parser."""
+        images, Ks, q = check_batch([image], np.asarray(K, np.float64)[None], np.asarray(joints)[None], self.robot)
+        poses = check_pose_batch(poses, len(poses), "pose to judge")
+        if self.parser is None:
+            raise Monose3Error(f"no robot parser for {self.robot.name}: judging a pose needs one (--parser FILE)")
+        start = time.perf_counter()
+        fits = judge_poses(self.parser, self.renderer, self.robot, images[0], Ks[0], q[0], poses)
+        n = len(poses)
+        return self._fit_estimate(
+            fits, images * n, np.repeat(Ks, n, 0), np.repeat(q, n, 0), time.perf_counter() - start
         )
 
     def track(

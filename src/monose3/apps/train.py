@@ -35,6 +35,17 @@ from monose3.robot import get_spec, robot_reference
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", nargs="+", default=[], help="DREAM folder(s) to train on")
     p.add_argument(
+        "--evidence",
+        nargs="+",
+        default=[],
+        help="evidence cache folder(s): the robot parser's outputs on synthesised scenes (--preset evidence)",
+    )
+    p.add_argument(
+        "--cache-samples",
+        type=int,
+        help="with --evidence: first make (or complete) the first folder's cache to this many samples",
+    )
+    p.add_argument(
         "--synthetic", action="store_true", help="synthesise training scenes on the fly on the training device"
     )
     p.add_argument("--synthetic-ratio", type=float, default=0.5, help="with --data too: share of synthetic steps [0.5]")
@@ -45,7 +56,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "--backgrounds", help="folder of photographs for synthetic backgrounds (default: scikit-image's, if installed)"
     )
     p.add_argument("--out", required=True, help="run folder: weights.json + shards, checkpoint.pt, log.csv, loss.png")
-    p.add_argument("--preset", default=TRAIN_PRESET, help=f"configuration preset: cpu or paper [{TRAIN_PRESET}]")
+    p.add_argument(
+        "--preset", default=TRAIN_PRESET, help=f"configuration preset: cpu, paper or evidence [{TRAIN_PRESET}]"
+    )
     p.add_argument("--robot", default="panda", help=f"robot to train for: panda, kuka or {ROBOT_FILE_HELP} [panda]")
     p.add_argument("--steps", type=int, help="stop at this optimiser step (overrides the preset)")
     p.add_argument("--minutes", type=float, help="stop cleanly after this much wall-clock time")
@@ -114,8 +127,21 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
         raise Monose3Error(f"{out / 'checkpoint.pt'} exists; pass --resume to continue it or choose another --out")
     if args.init and args.resume:
         raise Monose3Error("--init starts a new run from weights, --resume continues one; pass only one")
-    if not args.data and not args.synthetic:
+    if not args.data and not args.synthetic and not args.evidence:
         raise Monose3Error("no training data: pass --data DIR (DREAM folders) and/or --synthetic")
+    design = args.design or get_preset(args.preset).network.design
+    if bool(args.evidence) != (design == "evidence"):
+        raise Monose3Error(
+            "--evidence DIR trains the evidence denoiser (--preset evidence) and it trains on nothing else"
+        )
+    if args.evidence and (args.data or args.synthetic):
+        raise Monose3Error("an evidence cache trains the evidence denoiser alone; drop --data/--synthetic")
+    if args.cache_samples is not None:
+        v.check_count(args.cache_samples, "--cache-samples")
+        if not args.evidence:
+            raise Monose3Error("--cache-samples makes an evidence cache: pass --evidence DIR")
+    for folder in args.evidence[1:] if args.cache_samples else args.evidence:
+        v.check_input_dir(folder, "--evidence")
     get_preset(args.preset)
     get_spec(args.robot)
     get_profile(args.profile)
@@ -147,7 +173,6 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
             raise Monose3Error(f"--flow-weight needs --design {designs}, the designs that predict a displacement field")
     if args.field_stride is not None and args.design != "flow-solve":
         raise Monose3Error("--field-stride sets the flow-solve design's field; pass --design flow-solve")
-    design = args.design or get_preset(args.preset).network.design
     if args.backbone == BACKBONES[2] and design not in PRETRAINED_TRUNK_DESIGNS:
         raise Monose3Error(f"--backbone {args.backbone} needs --design {' or '.join(PRETRAINED_TRUNK_DESIGNS)}")
     if args.design == "flow-solve" and args.rotation_output not in (None, "6d"):
@@ -197,7 +222,14 @@ def run_train(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     checked = getattr(args, "checked_inputs", None)
     frames = checked.frames if checked else (load_datasets(args.data, config.robot) if args.data else [])
-    sources = Sources(frames, args.synthetic, args.synthetic_ratio if frames else 1.0, args.profile, args.backgrounds)
+    if args.cache_samples:
+        from monose3.training.checkpoints import load_parser
+        from monose3.training.evidence_cache import make_cache
+        from monose3.training.formats import BUNDLED_PARSER
+
+        make_cache(args.evidence[0], args.cache_samples, config.train.seed, load_parser(BUNDLED_PARSER), config.robot)
+    ratio = args.synthetic_ratio if frames else 1.0
+    sources = Sources(frames, args.synthetic, ratio, args.profile, args.backgrounds, args.evidence)
     result = train(
         config,
         args.out,

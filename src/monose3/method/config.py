@@ -34,7 +34,7 @@ class DiffusionConfig:
 # The denoiser architectures (method.denoiser): "concat" is the paper's; see docs/DESIGNS.md.
 # The study's other candidates (siamese, siamese-corr, siamese-pose, siamese-grid; the abs6d
 # rotation output) lost and were removed after round 4; DESIGNS.md names the commit that has them.
-DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve")  # classes: monose3.method.designs
+DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve", "evidence")  # classes: monose3.method.designs
 FIELD_STRIDES = (4, 8)
 # The denoiser's trunks: ResNets from scratch, or EfficientNet-Lite0 with its ImageNet weights
 # (monose3.networks.backbone), which only the designs that compare through cost volumes take.
@@ -141,6 +141,13 @@ PRESETS: dict[str, Config] = {
         preset="cpu",
         network=NetworkConfig(backbone="resnet18", render_size=(128, 96), input_size=(320, 240)),
         train=TrainConfig(batch_size=16, warmup_steps=200, checkpoint_every=200, num_workers=1),
+    ),
+    # The evidence denoiser (method.designs.evidence): the parser's mask and keypoints against the
+    # silhouette and keypoints at H_t, at 64x48, trained on a cache of the parser's outputs.
+    "evidence": Config(
+        preset="evidence",
+        network=NetworkConfig(backbone="resnet18", render_size=(64, 48), input_size=(320, 240), design="evidence"),
+        train=TrainConfig(batch_size=64, lr=1e-3, warmup_steps=200, checkpoint_every=500, num_workers=0),
     ),
 }
 

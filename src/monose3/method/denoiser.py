@@ -58,6 +58,10 @@ class Denoiser(nn.Module):
     (:meth:`compare`), and reads the rotation outputs as ``config.rotation_output`` says."""
 
     predicts_field: ClassVar[bool] = False  # whether DenoiserOutput.field is set (TrainConfig.flow_weight)
+    # What it compares: "pixels" (the render's and the image's) or "parser" (the silhouette and
+    # keypoints at H_t against the robot parser's mask and keypoints: method.evidence).
+    inputs: ClassVar[str] = "pixels"
+    channels: ClassVar[int] = 3  # of the render and of the crop each
     rotation_outputs: ClassVar[tuple[str, ...]] = ROTATION_OUTPUTS  # the rotation outputs it can be read with
 
     def __init__(self, config: NetworkConfig):

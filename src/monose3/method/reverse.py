@@ -20,6 +20,7 @@ from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser
+from monose3.method.evidence import Evidence, evidence_crops, render_maps
 from monose3.method.flow_pose import render_surface
 from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
@@ -59,6 +60,7 @@ class PreparedBatch:
     joints: np.ndarray  # [N, n]
     points_ref: torch.Tensor  # [N, P, 3]
     centroid: torch.Tensor  # [N, 3]
+    evidence: Evidence | None = None  # the parser's, for a denoiser that reads it (one row per hypothesis)
 
 
 def check_steps(sampler: str, ddim_steps: int, direct_steps: int) -> None:
@@ -88,8 +90,14 @@ class ReverseDiffusion:
 
     # ---- inputs ---------------------------------------------------------------------------
 
-    def prepare(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, hyps: int) -> PreparedBatch:
-        """Standardise the images (and their K) to ``network.input_size``; ``hyps`` rows per image."""
+    def prepare(self, images: list[np.ndarray], Ks: np.ndarray, joints: np.ndarray, hyps: int,
+                evidence: Evidence | None = None) -> PreparedBatch:  # fmt: skip
+        """Standardise the images (and their K) to ``network.input_size``; ``hyps`` rows per image
+        (and of ``evidence``, the parser's in the standardised images, where the denoiser reads it)."""
+        if self.model.inputs == "parser" and evidence is None:
+            raise Monose3Error(
+                "the evidence denoiser reads the robot parser's evidence: load the estimator with a parser"
+            )
         size = self.config.network.input_size
         std_images, std_K = [], []
         for img, K in zip(images, Ks, strict=True):
@@ -107,6 +115,7 @@ class ReverseDiffusion:
             joints=np.repeat(joints, hyps, axis=0),
             points_ref=rep(torch.from_numpy(points - centroid[:, None])),
             centroid=rep(torch.from_numpy(centroid)),
+            evidence=None if evidence is None else evidence.map(rep),
         )
 
     def initial_poses(self, batch: PreparedBatch) -> torch.Tensor:
@@ -136,18 +145,34 @@ class ReverseDiffusion:
         net = self.config.network
         with self.timed("crop"):
             boxes, K_crop = crop_geometry(pose_ref, batch.points_ref, batch.K, net.render_size)
-        with self.timed("render"):
-            pose_base = base_frame(pose_ref, batch.centroid).to(self.device)
-            rendered = self.renderer.render(batch.joints, pose_base, K_crop.to(self.device), net.render_size)
-        with self.timed("crop"):
-            crops = crop_batch(batch.images, boxes.to(self.device), net.render_size)
+        render, crops, depth = self.compared(batch, pose_ref, boxes, K_crop.to(self.device))
         with self.timed("network"):
             steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
-            surface = render_surface(rendered.depth, pose_ref.to(self.device).float(), K_crop.to(self.device).float())
-            raw = self.model(rendered.rgb, crops.to(self.device), steps, surface).raw.double().cpu()
+            surface = render_surface(depth, pose_ref.to(self.device).float(), K_crop.to(self.device).float())
+            raw = self.model(render, crops.to(self.device), steps, surface).raw.double().cpu()
         with self.timed("update"):
             v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])
             return apply_update(pose_ref, v_xy, d_rot, v_z, K_crop)
+
+    def compared(self, batch: PreparedBatch, pose_ref: torch.Tensor, boxes: torch.Tensor,
+                 K_crop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+        """What the denoiser compares at H_t = ``pose_ref``: the render and the crop (the image's
+        pixels; or, for the evidence denoiser, the silhouette and keypoints against the parser's
+        evidence: :mod:`monose3.method.evidence`), and the render's depth."""
+        size, evidence = self.config.network.render_size, self.model.inputs == "parser"
+        with self.timed("render"):
+            pose_base = base_frame(pose_ref, batch.centroid).to(self.device)
+            rendered = self.renderer.render(batch.joints, pose_base, K_crop, size, shade=not evidence)
+            render = rendered.rgb
+            if evidence:
+                kp_cam = torch.from_numpy(self.robot.keypoints(batch.joints, pose_base.cpu().numpy()))
+                render = render_maps(rendered.mask, kp_cam.to(self.device), K_crop)
+        with self.timed("crop"):
+            if evidence:
+                crops = evidence_crops(batch.evidence, boxes, size)
+            else:
+                crops = crop_batch(batch.images, boxes.to(self.device), size)
+        return render, crops, rendered.depth
 
     # ---- Alg. 2 -----------------------------------------------------------------------------
 
@@ -164,6 +189,7 @@ class ReverseDiffusion:
         seed: int = 0,
         init_poses: np.ndarray | None = None,
         start_t: int | None = None,
+        evidence: Evidence | None = None,
     ) -> Chains:
         """'revdiff' (K DDIM + M direct steps, the paper) or 'directreg' (K + M direct steps, the
         baseline) from RoboPose's initialisation or ``init_poses`` ``[B, 4, 4]``; ``stochastic``
@@ -174,7 +200,7 @@ class ReverseDiffusion:
         check_steps(sampler, ddim_steps, direct_steps)
         self.timings = defaultdict(float)
         start = time.perf_counter()
-        batch = self.prepare(images, Ks, joints, hypotheses)
+        batch = self.prepare(images, Ks, joints, hypotheses, evidence)
         gen = torch.Generator().manual_seed(seed) if stochastic else None
         if init_poses is None:
             pose = self.initial_poses(batch)

@@ -25,11 +25,12 @@ from monose3.data.scenes.profiles import get_profile
 from monose3.errors import Monose3Error
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser
-from monose3.method.designs import build_denoiser
+from monose3.method.designs import build_denoiser, design_inputs
 from monose3.method.scheduler import make_noiser
 from monose3.robot import RobotModel
 from monose3.robot.renderer import RobotRenderer
 from monose3.training.checkpoints import read_checkpoint, read_weights, save_checkpoint
+from monose3.training.evidence_cache import EvidenceCache, evidence_batch
 from monose3.training.logs import LogWindow, plot_training_logs
 from monose3.training.objective import train_step
 from monose3.training.samples import (
@@ -57,10 +58,15 @@ class Sources:
     synthetic_ratio: float = 1.0
     profile: str = "train"
     backgrounds: str | Path | None = None
+    evidence: list = field(
+        default_factory=list
+    )  # evidence cache folders (training.evidence_cache): the evidence denoiser's
 
     def __post_init__(self) -> None:
-        if not self.frames and not self.synthetic:
+        if not self.frames and not self.synthetic and not self.evidence:
             raise Monose3Error("no training data: pass --data DIR (DREAM folders) and/or --synthetic")
+        if self.evidence and (self.frames or self.synthetic):
+            raise Monose3Error("an evidence cache trains the evidence denoiser alone; drop --data/--synthetic")
         if not 0.0 <= self.synthetic_ratio <= 1.0:
             raise Monose3Error(f"--synthetic-ratio must lie in [0, 1], got {self.synthetic_ratio}")
 
@@ -124,6 +130,9 @@ class BatchMaker:
         )
         scenes = SceneDataset(self.robot.spec, sources.profile, config.network.input_size, tc.seed)
         self._scenes: Iterator | None = iter(loader(scenes)) if sources.synthetic else None
+        self.evidence = EvidenceCache(sources.evidence) if sources.evidence else None
+        if (self.evidence is None) != (design_inputs(config.network) != "parser"):
+            raise Monose3Error("the evidence denoiser trains on an evidence cache (--evidence DIR), and only it does")
 
     def next_scenes(self) -> dict[str, torch.Tensor]:
         """The next batch of synthetic scenes (joints, pose, K, lighting...), as :meth:`batch` draws them."""
@@ -140,6 +149,8 @@ class BatchMaker:
         return "synthetic" if draw < self.sources.synthetic_ratio else "frames"
 
     def batch(self, step: int) -> tuple[str, dict[str, torch.Tensor]]:
+        if self.evidence is not None:
+            return "cache", self.evidence_batch(step)
         # Both streams advance every step, so which source a step uses does not shift the others.
         source = self.source_of(step)
         frames = next(self._frames) if self._frames is not None else None
@@ -151,6 +162,16 @@ class BatchMaker:
             batch = frames_batch(frames, self.robot, self.renderer, self.noiser, self.config, gen, self.device, t_max)
             return source, batch
         return source, self.synthetic_batch(scenes, gen, step_generator(seed, step, self.device), t_max)
+
+    def evidence_batch(self, step: int) -> dict[str, torch.Tensor]:
+        """A batch of cached parser evidence: the samples drawn by the step's generator (so a
+        resumed run sees the same ones), through the forward process."""
+        tc = self.config.train
+        gen = step_generator(tc.seed * 1000 + self.rank, step)
+        indices = torch.randint(len(self.evidence), (tc.batch_size,), generator=gen)
+        t_max = max_timestep(step - self.curriculum_from, self.config)
+        samples = self.evidence.take(indices)
+        return evidence_batch(samples, self.robot, self.renderer, self.noiser, self.config, gen, self.device, t_max)
 
     def synthetic_batch(
         self, scenes, gen: torch.Generator, device_gen: torch.Generator, t_max: int | None = None
