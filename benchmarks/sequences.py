@@ -1,8 +1,9 @@
 """Tracking on sequences: does the policy hold a track, never trade it for a worse re-estimate,
 flag its bad frames, and (``--static-camera``) converge to one camera pose?
 
-Sequences are made for this run (``monose3 generate --sequence``, seeds of their own that no
-tuning used): by default one each of a static camera on a ``reallike`` and on a ``hard`` scene
+Sequences are made for this run (``monose3 generate --sequence``) from seeds 51000 on, which
+no choice of the policy looked at (its development used seeds 31000-31003, the tracked flag's
+choice 41000-41007): by default one each of a static camera on a ``reallike`` and on a ``hard`` scene
 and a slowly orbiting camera on each, ``--frames`` long. Each goes through
 
 * ``track``: the default policy (``monose3 track``);
@@ -154,7 +155,7 @@ def run(argv: list[str] | None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sequences", type=int, default=len(KINDS), help="sequences (cycling through the kinds)")
     p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--seed", type=int, default=31000, help="first sequence's seed (the next ones count up)")
+    p.add_argument("--seed", type=int, default=51000, help="first sequence's seed (the next ones count up)")
     p.add_argument("--single-every", type=int, default=3, help="the single-frame reference on every N-th frame")
     p.add_argument(
         "--renderer", default="torch", help="torch, or tiny for pybullet's (another renderer than training's)"

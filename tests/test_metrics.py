@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from monose3.errors import Monose3Error
-from monose3.report.metrics import add_per_frame, auc, format_table, summarize
+from monose3.report.metrics import add_per_frame, auc, auc_interval, format_table, summarize
 
 
 def reference_auc(adds, max_threshold=0.1, step=1e-5):
@@ -112,3 +112,13 @@ def test_format_table():
     assert lines[2].startswith("RealSense-Franka") and "1.30" in lines[2] and "0.0200" in lines[2]
     assert f"{rows['Azure']['auc']:.2f}" in lines[3]
     assert "FPS" not in format_table({"a": summarize([0.01])})
+
+
+def test_auc_interval_holds_the_auc_and_narrows_with_more_frames():
+    rng = np.random.default_rng(0)
+    few, many = rng.uniform(0, 0.1, 30), rng.uniform(0, 0.1, 3000)
+    for adds in (few, many):
+        lo, hi = auc_interval(adds)
+        assert lo <= auc(adds) <= hi
+    assert np.diff(auc_interval(many)) < np.diff(auc_interval(few)) / 5
+    assert auc_interval(np.full(10, 0.02)) == pytest.approx((auc(np.full(10, 0.02)),) * 2)

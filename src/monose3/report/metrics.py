@@ -89,6 +89,17 @@ def auc(adds: Sequence[float] | np.ndarray, max_threshold: float = AUC_MAX_THRES
     return float(np.trapezoid(fraction, dx=step) / max_threshold * 100.0)
 
 
+def auc_interval(adds: Sequence[float] | np.ndarray, level: float = 0.95, resamples: int = 2000,
+                 seed: int = 0) -> tuple[float, float]:  # fmt: skip
+    """A percentile bootstrap interval of :func:`auc` over the frames (resampled with
+    replacement ``resamples`` times): how much the AUC of another draw of as many frames may differ."""
+    arr = _as_adds(adds)
+    rng = np.random.default_rng(seed)
+    draws = [auc(arr[rng.integers(0, arr.size, arr.size)]) for _ in range(resamples)]
+    tail = 100 * (1 - level) / 2
+    return float(np.percentile(draws, tail)), float(np.percentile(draws, 100 - tail))
+
+
 def summarize(adds: Sequence[float] | np.ndarray, fps: float | None = None) -> dict[str, float]:
     """The numbers of a results table for one dataset.
 
