@@ -13,6 +13,7 @@ import torch
 import monose3
 from monose3.estimator import PoseEstimator, evidence_of
 from monose3.geometry.camera import project, standardize_image
+from monose3.geometry.poses import perturb_poses
 from monose3.method.config import get_preset, with_section
 from monose3.method.designs import build_denoiser
 from monose3.method.evidence import (
@@ -23,8 +24,10 @@ from monose3.method.evidence import (
     keypoint_maps,
     render_maps,
 )
-from monose3.method.pose_space import centroid_frame
+from monose3.method.flow_pose import render_surface
+from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_geometry
+from monose3.method.update import apply_update, raw_to_update
 from monose3.perception.views import parse_image
 from monose3.training.checkpoints import load_parser
 from monose3.training.formats import BUNDLED_PARSER
@@ -44,6 +47,46 @@ def test_keypoint_maps_peak_where_the_keypoints_are_and_pad_to_the_channel_count
         keypoint_maps(torch.zeros(1, KEYPOINT_CHANNELS + 1, 2), torch.ones(1, KEYPOINT_CHANNELS + 1), SIZE)
 
 
+def perfect_evidence(renderer, model, view, size) -> Evidence:
+    """What a perfect parser would see: the true silhouette over the whole image, the true keypoints."""
+    pose, K = torch.from_numpy(view.pose)[None], torch.from_numpy(view.K)[None]
+    mask = renderer.render(view.joints[None], pose, K, size, shade=False).mask.float()[:, None]
+    uv = project(view.keypoints @ view.pose[:3, :3].T + view.pose[:3, 3], view.K)
+    return Evidence(mask, torch.tensor([[0.0, 0.0, *size]], dtype=torch.float64), torch.from_numpy(uv)[None],
+                    torch.ones(1, len(view.keypoints)))  # fmt: skip
+
+
+def test_the_untrained_evidence_solve_steps_toward_the_parsers_keypoints(renderers, models, sample_view):
+    """Its head at zero, ``evidence-solve`` is a Gauss-Newton step of the keypoints onto their
+    blobs: from 5 deg / 3 cm off, perfect evidence brings the pose most of the way to the truth."""
+    model, renderer, size = models["panda"], renderers["panda"], (320, 240)
+    view = sample_view(model, np.random.default_rng(7), size, (1.0, 1.6))
+    truth = perfect_evidence(renderer, model, view, size)
+    config = get_preset("evidence")
+    net = build_denoiser(with_section(config, "network", design="evidence-solve").network).eval()
+    centroid = torch.from_numpy(model.centroid(view.points))[None]
+    points_ref = torch.from_numpy(view.points)[None] - centroid[:, None]
+    start = centroid_frame(torch.from_numpy(perturb_poses(view.pose[None], np.random.default_rng(1), 0.03, 5.0)),
+                           centroid)  # fmt: skip
+    K = torch.from_numpy(view.K)[None]
+    boxes, K_crop = crop_geometry(start, points_ref, K, SIZE)
+    pose_base = base_frame(start, centroid)
+    rendered = renderer.render(view.joints[None], pose_base, K_crop, SIZE, shade=False)
+    kp_cam = torch.from_numpy(model.keypoints(view.joints[None], pose_base.numpy()))
+    surface = render_surface(rendered.depth, start.float(), K_crop.float())
+    surface.keypoints_ref = torch.from_numpy(view.keypoints - centroid.numpy())[None]
+    with torch.no_grad():
+        raw = net(render_maps(rendered.mask, kp_cam, K_crop), evidence_crops(truth, boxes, SIZE),
+                  torch.tensor([10]), surface).raw.double()  # fmt: skip
+    solved = base_frame(apply_update(start, *raw_to_update(raw, SIZE[0]), K_crop), centroid)[0].numpy()
+    true_cam = view.keypoints @ view.pose[:3, :3].T + view.pose[:3, 3]
+
+    def error(pose: np.ndarray) -> float:
+        return float(np.linalg.norm(model.keypoints(view.joints[None], pose[None])[0] - true_cam, axis=-1).mean())
+
+    assert error(solved) < 0.3 * error(pose_base[0].numpy())
+
+
 def test_the_evidence_of_the_true_pose_lines_up_with_its_render(renderers, models, sample_view):
     """A perfect parser (the true silhouette over the whole image, the true keypoints) cropped at
     H_0 matches the render side at H_0 pixel for pixel, and not at a pose moved sideways."""
@@ -51,10 +94,7 @@ def test_the_evidence_of_the_true_pose_lines_up_with_its_render(renderers, model
     size = (320, 240)
     view = sample_view(model, np.random.default_rng(4), size, (1.0, 1.6))
     pose, K = torch.from_numpy(view.pose)[None], torch.from_numpy(view.K)[None]
-    mask = renderer.render(view.joints[None], pose, K, size, shade=False).mask.float()[:, None]
-    truth = Evidence(mask, torch.tensor([[0.0, 0.0, *size]], dtype=torch.float64),
-                     torch.from_numpy(project(view.keypoints @ view.pose[:3, :3].T + view.pose[:3, 3], view.K))[None],
-                     torch.ones(1, len(view.keypoints)))  # fmt: skip
+    truth = perfect_evidence(renderer, model, view, size)
     centroid = torch.from_numpy(model.centroid(view.points))[None]
     points_ref = torch.from_numpy(view.points)[None] - centroid[:, None]
 

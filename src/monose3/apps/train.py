@@ -130,7 +130,7 @@ def check_train(args: argparse.Namespace) -> SimpleNamespace:
     if not args.data and not args.synthetic and not args.evidence:
         raise Monose3Error("no training data: pass --data DIR (DREAM folders) and/or --synthetic")
     design = args.design or get_preset(args.preset).network.design
-    if bool(args.evidence) != (design == "evidence"):
+    if bool(args.evidence) != design.startswith("evidence"):
         raise Monose3Error(
             "--evidence DIR trains the evidence denoiser (--preset evidence) and it trains on nothing else"
         )

@@ -34,7 +34,14 @@ class DiffusionConfig:
 # The denoiser architectures (method.denoiser): "concat" is the paper's; see docs/DESIGNS.md.
 # The study's other candidates (siamese, siamese-corr, siamese-pose, siamese-grid; the abs6d
 # rotation output) lost and were removed after round 4; DESIGNS.md names the commit that has them.
-DESIGNS = ("concat", "concat-grid", "cost-volume", "flow-solve", "evidence")  # classes: monose3.method.designs
+DESIGNS = (
+    "concat",
+    "concat-grid",
+    "cost-volume",
+    "flow-solve",
+    "evidence",
+    "evidence-solve",
+)  # classes: monose3.method.designs
 FIELD_STRIDES = (4, 8)
 # The denoiser's trunks: ResNets from scratch, or EfficientNet-Lite0 with its ImageNet weights
 # (monose3.networks.backbone), which only the designs that compare through cost volumes take.

@@ -38,6 +38,8 @@ class Surface:
     valid: torch.Tensor  # [B, N] bool: the render shows robot there
     pose_ref_t: torch.Tensor  # [B, 4, 4] H_t, camera-from-centroid, that the render shows
     K_crop: torch.Tensor  # [B, 3, 3] the crop's intrinsics
+    # [B, K, 3] the robot's keypoints in the centroid frame (the evidence designs read them)
+    keypoints_ref: torch.Tensor | None = None
 
 
 def render_surface(

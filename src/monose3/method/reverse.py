@@ -61,6 +61,7 @@ class PreparedBatch:
     points_ref: torch.Tensor  # [N, P, 3]
     centroid: torch.Tensor  # [N, 3]
     evidence: Evidence | None = None  # the parser's, for a denoiser that reads it (one row per hypothesis)
+    keypoints_ref: torch.Tensor | None = None  # [N, K, 3] the robot's keypoints in the centroid frame
 
 
 def check_steps(sampler: str, ddim_steps: int, direct_steps: int) -> None:
@@ -116,6 +117,7 @@ class ReverseDiffusion:
             points_ref=rep(torch.from_numpy(points - centroid[:, None])),
             centroid=rep(torch.from_numpy(centroid)),
             evidence=None if evidence is None else evidence.map(rep),
+            keypoints_ref=rep(torch.from_numpy(self.robot.keypoints(joints) - centroid[:, None])),
         )
 
     def initial_poses(self, batch: PreparedBatch) -> torch.Tensor:
@@ -149,6 +151,7 @@ class ReverseDiffusion:
         with self.timed("network"):
             steps = torch.full((len(pose_ref),), t, dtype=torch.long, device=self.device)
             surface = render_surface(depth, pose_ref.to(self.device).float(), K_crop.to(self.device).float())
+            surface.keypoints_ref = batch.keypoints_ref.to(self.device)
             raw = self.model(render, crops.to(self.device), steps, surface).raw.double().cpu()
         with self.timed("update"):
             v_xy, d_rot, v_z = raw_to_update(raw, net.render_size[0])

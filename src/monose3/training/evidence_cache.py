@@ -159,6 +159,11 @@ def parser_mistakes(evidence: Evidence, gen: torch.Generator) -> Evidence:
     return Evidence(mask, evidence.box, kp, conf)
 
 
+def keypoints_ref(robot: RobotModel, joints: np.ndarray, centroid: torch.Tensor) -> torch.Tensor:
+    """The robot's keypoints ``[B, K, 3]`` in the centroid frame (what the evidence designs pull)."""
+    return torch.from_numpy(robot.keypoints(joints)) - centroid[:, None].to(torch.float64)
+
+
 def evidence_batch(samples: dict[str, torch.Tensor], robot: RobotModel, renderer: RobotRenderer,
                    noiser: PoseNoiser, config: Config, gen: torch.Generator, device: torch.device,
                    t_max: int | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
@@ -183,4 +188,5 @@ def evidence_batch(samples: dict[str, torch.Tensor], robot: RobotModel, renderer
         "pose_ref_0": views.pose_ref_0.float().to(device),
         "K_crop": views.K_crop.float().to(device),
         "points_ref": views.points_ref.float().to(device),
+        "keypoints_ref": keypoints_ref(robot, joints, views.centroid).float().to(device),
     }

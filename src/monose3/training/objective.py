@@ -16,8 +16,11 @@ from monose3.method.loss import disentangled_loss, flow_loss
 
 
 def batch_surface(batch: dict[str, torch.Tensor]) -> Surface:
-    """The visible surface of a batch's renders (its ``depth`` at ``pose_ref_t`` through ``K_crop``)."""
-    return render_surface(batch["depth"], batch["pose_ref_t"], batch["K_crop"])
+    """The visible surface of a batch's renders (its ``depth`` at ``pose_ref_t`` through ``K_crop``),
+    with the robot's keypoints where the batch has them (``keypoints_ref``: the evidence designs')."""
+    surface = render_surface(batch["depth"], batch["pose_ref_t"], batch["K_crop"])
+    surface.keypoints_ref = batch.get("keypoints_ref")
+    return surface
 
 
 def objective(

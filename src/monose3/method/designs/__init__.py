@@ -6,7 +6,7 @@ from monose3.method.config import DESIGNS, NetworkConfig
 from monose3.method.denoiser import Denoiser
 from monose3.method.designs.concat import Concat, ConcatGrid
 from monose3.method.designs.cost_volume import CostVolume, FlowSolve
-from monose3.method.designs.evidence import EvidenceNet
+from monose3.method.designs.evidence import EvidenceNet, EvidenceSolve
 
 DESIGN_CLASSES: dict[str, type[Denoiser]] = {
     "concat": Concat,
@@ -14,6 +14,7 @@ DESIGN_CLASSES: dict[str, type[Denoiser]] = {
     "cost-volume": CostVolume,
     "flow-solve": FlowSolve,
     "evidence": EvidenceNet,
+    "evidence-solve": EvidenceSolve,
 }
 FIELD_DESIGNS = tuple(name for name, cls in DESIGN_CLASSES.items() if cls.predicts_field)
 

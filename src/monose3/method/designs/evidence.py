@@ -14,13 +14,22 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from monose3.geometry.pose_solve import solve_pose
+from monose3.geometry.poses import make_pose
 from monose3.method.config import NetworkConfig
 from monose3.method.denoiser import Denoiser, DenoiserOutput
 from monose3.method.designs.blocks import zero_head
-from monose3.method.evidence import EVIDENCE_CHANNELS
+from monose3.method.evidence import EVIDENCE_CHANNELS, KEYPOINT_CHANNELS, KEYPOINT_SIGMA
 from monose3.method.flow_pose import Surface
+from monose3.method.pose_space import MIN_DEPTH
+from monose3.method.update import true_update, update_to_raw
 
 WIDTHS = (32, 64, 128, 128, 256)  # one 3x3 convolution each; all but the first halve the resolution
+# evidence-solve: the solve's prior on the update (log precisions per rotation-vector radian and
+# unit of depth) starts negligible beside the keypoints' pull, and moves PRIOR_GAIN times as fast
+# as its weights; a keypoint's weight starts at its blob's share (exp(0)) and learns per sample.
+INITIAL_LOG_PRIOR = -5.0
+PRIOR_GAIN = 10.0
 
 
 def conv_block(cin: int, cout: int, stride: int) -> nn.Sequential:
@@ -50,3 +59,57 @@ class EvidenceNet(Denoiser):
         b, _, h, w = render.shape
         x = torch.cat([crop, render, emb[:, :, None, None].expand(b, -1, h, w)], 1)
         return DenoiserOutput(self.head(self.trunk(x).flatten(1)))
+
+
+def blob_centres(maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The centre ``[B, C, 2]`` (crop pixels) of each keypoint map ``[B, C, h, w]`` and its mass
+    as a share ``[B, C]`` of a whole blob of weight 1: the keypoint's confidence times how much
+    of its blob the crop holds (0 where the map is empty)."""
+    b, c, h, w = maps.shape
+    ys = torch.arange(h, dtype=maps.dtype, device=maps.device)
+    xs = torch.arange(w, dtype=maps.dtype, device=maps.device)
+    mass = maps.sum((2, 3))
+    safe = mass.clamp_min(1e-6)
+    centre = torch.stack([(maps.sum(2) * xs).sum(-1) / safe, (maps.sum(3) * ys).sum(-1) / safe], -1)
+    return centre, (mass / (2 * torch.pi * KEYPOINT_SIGMA**2)).clamp(0, 1)
+
+
+class EvidenceSolve(EvidenceNet):
+    """The evidence denoiser whose pose is solved, not regressed (as ``flow-solve`` solves it from
+    a displacement field): each keypoint of the render at H_t is pulled to where the parser's
+    blob of it lies in the crop (its centre), moved by a learned residual and weighted by a
+    learned confidence (both from comparing the two sides, so a keypoint the silhouettes
+    contradict counts little) times the blob's share in the crop; the pose is the MAP fit of
+    those pulls (damped Gauss-Newton from H_t, :func:`~monose3.geometry.pose_solve.solve_pose`)
+    against a prior on the update learned per t. Untrained, it is a PnP step toward the parser's keypoints."""
+
+    rotation_outputs = ("6d",)  # the raw outputs are those of a solved pose, never regressed
+
+    def __init__(self, config: NetworkConfig, pretrained: bool = True):
+        super().__init__(config, pretrained)
+        features = self.head[0].in_features
+        self.head = zero_head(features)
+        self.head[2] = nn.Linear(256, 3 * KEYPOINT_CHANNELS)  # residual (x, y) in render widths, log-weight
+        nn.init.zeros_(self.head[2].weight)
+        nn.init.zeros_(self.head[2].bias)
+        emb = config.time_embedding_dim
+        self.prior = nn.Sequential(nn.Linear(emb, 32), nn.ReLU(inplace=True), nn.Linear(32, 6))
+        nn.init.zeros_(self.prior[2].weight)
+        nn.init.zeros_(self.prior[2].bias)
+
+    def compare(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface) -> DenoiserOutput:
+        if surface.keypoints_ref is None:
+            raise ValueError("evidence-solve needs the robot's keypoints with the surface (Surface.keypoints_ref)")
+        b, _, h, w = render.shape
+        x = torch.cat([crop, render, emb[:, :, None, None].expand(b, -1, h, w)], 1)
+        out = self.head(self.trunk(x).flatten(1)).float().reshape(b, KEYPOINT_CHANNELS, 3)
+        k = surface.keypoints_ref.shape[1]
+        centres, share = blob_centres(crop[:, 1 : 1 + k].float())
+        target = centres + out[:, :k, :2] * w
+        weights = share * torch.exp(out[:, :k, 2])
+        prior = torch.exp(INITIAL_LOG_PRIOR + PRIOR_GAIN * self.prior(emb.float()))
+        pose = solve_pose(surface.pose_ref_t.float(), surface.K_crop.float(), surface.keypoints_ref.float(), target,
+                          weights, prior)  # fmt: skip
+        pose = make_pose(pose[:, :3, :3], torch.cat([pose[:, :2, 3], pose[:, 2:3, 3].clamp_min(MIN_DEPTH)], 1))
+        raw = update_to_raw(*true_update(surface.pose_ref_t.float(), pose, surface.K_crop.float()), w)
+        return DenoiserOutput(raw.to(render.dtype))
