@@ -178,7 +178,7 @@ def test_cost_volume_peaks_at_the_displacement_between_its_inputs():
 def test_only_the_field_designs_return_a_field():
     render, crop, t = torch.rand(2, 3, 48, 64), torch.rand(2, 3, 48, 64), torch.tensor([3, 40])
     surface = slab_surface((64, 48))
-    assert set(FIELD_DESIGNS) == {"cost-volume", "flow-solve"}
+    assert set(FIELD_DESIGNS) == {"cost-volume", "flow-solve", "evidence-solve"}
     out = build_denoiser(NetworkConfig(backbone="resnet18", render_size=(64, 48), design="cost-volume"))(
         render, crop, t, surface
     )

@@ -11,6 +11,8 @@ feature is (the offset between the two sides) survives to the output.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -20,7 +22,7 @@ from monose3.method.config import NetworkConfig
 from monose3.method.denoiser import Denoiser, DenoiserOutput
 from monose3.method.designs.blocks import zero_head
 from monose3.method.evidence import EVIDENCE_CHANNELS, KEYPOINT_CHANNELS, KEYPOINT_SIGMA
-from monose3.method.flow_pose import Surface
+from monose3.method.flow_pose import Surface, sample_field
 from monose3.method.pose_space import MIN_DEPTH
 from monose3.method.update import true_update, update_to_raw
 
@@ -30,6 +32,13 @@ WIDTHS = (32, 64, 128, 128, 256)  # one 3x3 convolution each; all but the first 
 # as its weights; a keypoint's weight starts at its blob's share (exp(0)) and learns per sample.
 INITIAL_LOG_PRIOR = -5.0
 PRIOR_GAIN = 10.0
+# Its displacement field comes off the trunk's third block (a quarter of the crop's resolution).
+# A cell's pull weighs (FIELD_UNIT / scale)^2: about 1 where the network is sure to a pixel of a
+# 64-wide crop; at init (scale 0.5 render widths) the few hundred surface points weigh less
+# together than one keypoint.
+FIELD_BLOCK = 2
+FIELD_UNIT = 0.02
+INITIAL_FIELD_LOG_SCALE = math.log(0.5)
 
 
 def conv_block(cin: int, cout: int, stride: int) -> nn.Sequential:
@@ -76,14 +85,22 @@ def blob_centres(maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 class EvidenceSolve(EvidenceNet):
     """The evidence denoiser whose pose is solved, not regressed (as ``flow-solve`` solves it from
-    a displacement field): each keypoint of the render at H_t is pulled to where the parser's
-    blob of it lies in the crop (its centre), moved by a learned residual and weighted by a
-    learned confidence (both from comparing the two sides, so a keypoint the silhouettes
-    contradict counts little) times the blob's share in the crop; the pose is the MAP fit of
-    those pulls (damped Gauss-Newton from H_t, :func:`~monose3.geometry.pose_solve.solve_pose`)
-    against a prior on the update learned per t. Untrained, it is a PnP step toward the parser's keypoints."""
+    a displacement field). Two kinds of pulls on the render at H_t, each weighted by how far the
+    network trusts it, fitted at once (damped Gauss-Newton from H_t against a prior on the update
+    learned per t: :func:`~monose3.geometry.pose_solve.solve_pose`):
+
+    * each keypoint to where the parser's blob of it lies in the crop (its centre), moved by a
+      learned residual and weighted by a learned confidence times the blob's share in the crop:
+      they carry large moves, as the blobs say which keypoint is which;
+    * each point of the render's visible surface by a displacement field the network predicts
+      from the two sides at a quarter of the crop's resolution, with a Laplace scale per cell
+      (``flow_weight`` trains it on the true field): the silhouettes' fine alignment. It starts
+      trusted little (:data:`INITIAL_FIELD_LOG_SCALE`), so the keypoints lead until it learns.
+
+    Untrained, it is a PnP step toward the parser's keypoints."""
 
     rotation_outputs = ("6d",)  # the raw outputs are those of a solved pose, never regressed
+    predicts_field = True
 
     def __init__(self, config: NetworkConfig, pretrained: bool = True):
         super().__init__(config, pretrained)
@@ -92,6 +109,10 @@ class EvidenceSolve(EvidenceNet):
         self.head[2] = nn.Linear(256, 3 * KEYPOINT_CHANNELS)  # residual (x, y) in render widths, log-weight
         nn.init.zeros_(self.head[2].weight)
         nn.init.zeros_(self.head[2].bias)
+        self.field = nn.Sequential(conv_block(WIDTHS[FIELD_BLOCK], 64, 1), nn.Conv2d(64, 3, 1))
+        nn.init.zeros_(self.field[1].weight)
+        nn.init.zeros_(self.field[1].bias)
+        nn.init.constant_(self.field[1].bias[2:], INITIAL_FIELD_LOG_SCALE)
         emb = config.time_embedding_dim
         self.prior = nn.Sequential(nn.Linear(emb, 32), nn.ReLU(inplace=True), nn.Linear(32, 6))
         nn.init.zeros_(self.prior[2].weight)
@@ -102,14 +123,24 @@ class EvidenceSolve(EvidenceNet):
             raise ValueError("evidence-solve needs the robot's keypoints with the surface (Surface.keypoints_ref)")
         b, _, h, w = render.shape
         x = torch.cat([crop, render, emb[:, :, None, None].expand(b, -1, h, w)], 1)
-        out = self.head(self.trunk(x).flatten(1)).float().reshape(b, KEYPOINT_CHANNELS, 3)
+        for i, block in enumerate(self.trunk):
+            x = block(x)
+            if i == FIELD_BLOCK:
+                field = self.field(x).float()
+        out = self.head(x.flatten(1)).float().reshape(b, KEYPOINT_CHANNELS, 3)
         k = surface.keypoints_ref.shape[1]
         centres, share = blob_centres(crop[:, 1 : 1 + k].float())
-        target = centres + out[:, :k, :2] * w
-        weights = share * torch.exp(out[:, :k, 2])
+        kp_target, kp_weights = centres + out[:, :k, :2] * w, share * torch.exp(out[:, :k, 2])
+        # The field's pulls, by normalised convolution as flow_pose.pose_from_field takes them.
+        precision = torch.exp(-2.0 * (field[:, 2:] - math.log(FIELD_UNIT)))
+        sampled = sample_field(torch.cat([field[:, :2] * precision, precision], 1), surface.uv, (w, h))
+        uv_target = surface.uv + sampled[..., :2] / sampled[..., 2:].clamp_min(1e-6) * w
+        uv_weights = sampled[..., 2] * surface.valid.float()
+        points = torch.cat([surface.keypoints_ref.float(), surface.points_ref.float()], 1)
         prior = torch.exp(INITIAL_LOG_PRIOR + PRIOR_GAIN * self.prior(emb.float()))
-        pose = solve_pose(surface.pose_ref_t.float(), surface.K_crop.float(), surface.keypoints_ref.float(), target,
-                          weights, prior)  # fmt: skip
+        pose = solve_pose(surface.pose_ref_t.float(), surface.K_crop.float(), points,
+                          torch.cat([kp_target, uv_target.float()], 1), torch.cat([kp_weights, uv_weights], 1),
+                          prior)  # fmt: skip
         pose = make_pose(pose[:, :3, :3], torch.cat([pose[:, :2, 3], pose[:, 2:3, 3].clamp_min(MIN_DEPTH)], 1))
         raw = update_to_raw(*true_update(surface.pose_ref_t.float(), pose, surface.K_crop.float()), w)
-        return DenoiserOutput(raw.to(render.dtype))
+        return DenoiserOutput(raw.to(render.dtype), field.to(render.dtype))
