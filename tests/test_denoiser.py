@@ -233,3 +233,11 @@ def test_a_field_with_a_scale_channel_is_judged_by_the_laplace_likelihood():
         assert losses[-1] == pytest.approx(0.05 / scale + math.log(scale), rel=1e-5)
     assert losses[1] < min(losses[0], losses[2])  # the likelihood is best where the scale is the error
     assert torch.allclose(flow_errors(field, target, mask), torch.tensor([0.05]))  # judged on the field alone
+
+
+def test_timestep_of_inverts_the_embedding():
+    from monose3.method.denoiser import timestep_of
+
+    t = torch.tensor([1, 5, 10, 50, 99, 100])
+    for dim in (4, 8):
+        assert torch.allclose(timestep_of(timestep_embedding(t, dim)), t.float(), atol=1e-3)

@@ -42,6 +42,14 @@ def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.cat([torch.sin(args), torch.cos(args)], dim=1)
 
 
+def timestep_of(emb: torch.Tensor) -> torch.Tensor:
+    """The steps ``[B]`` that :func:`timestep_embedding` embedded as ``emb`` ``[B, dim]`` (read off
+    its slowest sine and cosine: exact for t below pi times 10000 ** (1 - 2 / dim))."""
+    half = emb.shape[1] // 2
+    slowest = math.exp(-math.log(10000.0) * (half - 1) / half)
+    return torch.atan2(emb[:, half - 1], emb[:, -1]) / slowest
+
+
 def so3_raw(raw: torch.Tensor) -> torch.Tensor:
     """Raw outputs whose rotation part is read as a rotation vector (``raw[:, 2:5]``, radians)
     instead of a 6D offset, returned in the 6D layout :func:`raw_to_update` reads (exact: the

@@ -19,7 +19,7 @@ from torch import nn
 from monose3.geometry.pose_solve import solve_pose
 from monose3.geometry.poses import make_pose
 from monose3.method.config import NetworkConfig
-from monose3.method.denoiser import Denoiser, DenoiserOutput
+from monose3.method.denoiser import Denoiser, DenoiserOutput, timestep_of
 from monose3.method.designs.blocks import zero_head
 from monose3.method.evidence import EVIDENCE_CHANNELS, KEYPOINT_CHANNELS, KEYPOINT_SIGMA
 from monose3.method.flow_pose import Surface, sample_field
@@ -39,6 +39,10 @@ PRIOR_GAIN = 10.0
 FIELD_BLOCK = 2
 FIELD_UNIT = 0.02
 INITIAL_FIELD_LOG_SCALE = math.log(0.5)
+# The field reaches a few pixels (its receptive field at a quarter of the crop), the moves of
+# small t; beyond them its pulls are off however sure it is, so they count by a gate that falls
+# from 1 to 0 about t = FIELD_T (its trust learnt per cell at every t spread to the large ones).
+FIELD_T, FIELD_T_WIDTH = 12.0, 3.0
 
 
 def conv_block(cin: int, cout: int, stride: int) -> nn.Sequential:
@@ -95,7 +99,8 @@ class EvidenceSolve(EvidenceNet):
     * each point of the render's visible surface by a displacement field the network predicts
       from the two sides at a quarter of the crop's resolution, with a Laplace scale per cell
       (``flow_weight`` trains it on the true field): the silhouettes' fine alignment. It starts
-      trusted little (:data:`INITIAL_FIELD_LOG_SCALE`), so the keypoints lead until it learns.
+      trusted little (:data:`INITIAL_FIELD_LOG_SCALE`), so the keypoints lead until it learns,
+      and acts at small t only (:data:`FIELD_T`), where its moves are within its reach.
 
     Untrained, it is a PnP step toward the parser's keypoints."""
 
@@ -135,7 +140,8 @@ class EvidenceSolve(EvidenceNet):
         precision = torch.exp(-2.0 * (field[:, 2:] - math.log(FIELD_UNIT)))
         sampled = sample_field(torch.cat([field[:, :2] * precision, precision], 1), surface.uv, (w, h))
         uv_target = surface.uv + sampled[..., :2] / sampled[..., 2:].clamp_min(1e-6) * w
-        uv_weights = sampled[..., 2] * surface.valid.float()
+        gate = torch.sigmoid((FIELD_T - timestep_of(emb.float())) / FIELD_T_WIDTH)
+        uv_weights = sampled[..., 2] * surface.valid.float() * gate[:, None]
         points = torch.cat([surface.keypoints_ref.float(), surface.points_ref.float()], 1)
         prior = torch.exp(INITIAL_LOG_PRIOR + PRIOR_GAIN * self.prior(emb.float()))
         pose = solve_pose(surface.pose_ref_t.float(), surface.K_crop.float(), points,
