@@ -46,6 +46,7 @@ from monose3.data.dream_writer import write_camera_settings, write_frame
 from monose3.data.scenes.appearance import compose_frame, scene_background
 from monose3.data.scenes.profiles import PROFILES
 from monose3.data.scenes.sampling import frame_rng, sample_scene
+from monose3.data.scenes.sequences import in_view_fraction
 from monose3.errors import Monose3Error, run_reporting_errors
 from monose3.geometry.averaging import pose_residuals
 from monose3.report.plots import new_figure, save_figure
@@ -64,17 +65,6 @@ REASONS = (REASON_OUT_OF_VIEW, REASON_UNRELIABLE, REASON_POOR_FIT, REASON_CONSEN
 # ---- the static-camera set ------------------------------------------------------------------
 
 
-def visible_fraction(model: RobotModel, joints: np.ndarray, pose: np.ndarray, K: np.ndarray) -> float:
-    """Share of the robot's surface points inside the image (0 if any comes within 10 cm of the lens)."""
-    w, h = IMAGE_SIZE
-    cam = model.surface_points(joints[None])[0] @ pose[:3, :3].T + pose[:3, 3]
-    if cam[:, 2].min() < 0.1:
-        return 0.0
-    uv = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[[0, 1], [2, 2]]
-    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5)
-    return float(inside.mean())
-
-
 def sample_configurations(
     rng: np.random.Generator, model: RobotModel, pose: np.ndarray, K: np.ndarray, n: int, min_visible: float
 ) -> np.ndarray | None:
@@ -83,7 +73,7 @@ def sample_configurations(
     for _ in range(n):
         for _ in range(MAX_JOINT_TRIES):
             q = model.random_joints(rng, 1)[0]
-            if visible_fraction(model, q, pose, K) >= min_visible:
+            if in_view_fraction(model, q, pose, K, IMAGE_SIZE) >= min_visible:
                 out.append(q)
                 break
         else:

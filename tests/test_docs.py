@@ -9,8 +9,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_README_LINES = 250
-# Words about how the project was worked on, not about what it does.
-PROCESS_WORDS = re.compile(r"[a-z]+th session|this session|\blent\b|\bleases?\b|issue [0-9]", re.I)
+# Words about how the project was worked on, not about what it does. Spelt with escapes (\x20 a
+# space, \x65 an e) so that this file itself holds none of them and the same search, run with
+# git grep over the repository, finds nothing either.
+PROCESS_WORDS = re.compile(r"[a-z]+th\x20session|this\x20session|\bl\x65nt\b|\bl\x65ases?\b|issue\x20[0-9]", re.I)
 TEXT_SUFFIXES = {".md", ".py", ".toml", ".txt", ".json", ".yaml", ".yml", ".cfg", ".sh", ""}
 LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
 
@@ -36,7 +38,7 @@ def test_readme_is_short():
 
 def test_process_words_are_found():
     """Guards the next test against a pattern that matches nothing."""
-    samples = ("the nineteenth session's run", "on a lent GPU", "lease 2", "see issue 11")
+    samples = ("the nineteenth\x20session's run", "on a l\x65nt GPU", "l\x65ase 2", "see issue\x2011")
     assert all(PROCESS_WORDS.search(s) for s in samples)
     assert not PROCESS_WORDS.search("the robot's eighth link; a silent failure; released")
 
@@ -44,7 +46,7 @@ def test_process_words_are_found():
 def test_the_project_speaks_of_itself_only():
     hits = []
     for path in tracked_files():
-        if path.suffix not in TEXT_SUFFIXES or not path.is_file() or path.resolve() == Path(__file__).resolve():
+        if path.suffix not in TEXT_SUFFIXES or not path.is_file():
             continue
         for number, line in enumerate(path.read_text(encoding="utf-8", errors="ignore").splitlines(), 1):
             if PROCESS_WORDS.search(line):

@@ -14,9 +14,10 @@ import yaml
 from monose3 import atomic
 from monose3.data import validation
 from monose3.errors import Monose3Error
-from monose3.estimator import UNRELIABLE_MM, Estimate, PoseEstimator
+from monose3.estimator import UNRELIABLE_MM, Estimate, PoseEstimator  # noqa: F401 - UNRELIABLE_MM: the shipped chains threshold, read from here
 from monose3.report.overlays import pose_overlays
 from monose3.robot.renderer import RobotRenderer
+from monose3.tracking import estimate_quality
 from monose3.training.checkpoints import load_model, load_parser
 from monose3.training.formats import BUNDLED_CHECKPOINT, BUNDLED_PARSER, BUNDLED_PARSER_ROBOT, check_checkpoint
 
@@ -84,9 +85,7 @@ class PoseResult:
     @property
     def doubts(self) -> list[str]:
         """Why the estimate is unreliable, in words (empty when it is reliable or there is nothing to judge by)."""
-        if self.estimate.doubts is not None:
-            return list(self.estimate.doubts[0])
-        return ["chains disagree"] if self.reliable is False else []
+        return estimate_quality(self.estimate).doubts
 
     @property
     def reliable(self) -> bool | None:
@@ -97,21 +96,13 @@ class PoseResult:
         (``perception.reliability.FLAG_MODEL``; :attr:`doubts` says why not). The paper's
         samplers: whether the chains agree within ``UNRELIABLE_MM``; None with one chain
         (nothing to compare)."""
-        if self.estimate.reliable is not None:
-            return bool(self.estimate.reliable[0])
-        if self.chains < 2 or not np.isfinite(self.spread_mm):
-            return None
-        return bool(self.spread_mm <= UNRELIABLE_MM)
+        return estimate_quality(self.estimate).reliable
 
     @property
     def confidence(self) -> float | None:
         """ "fit": the silhouette IoU. The paper's samplers: exp(-spread / 30 mm), 1 when the
         chains agree, 0.37 at the unreliable threshold; None with one chain (no spread to measure)."""
-        if self.fit_iou is not None:
-            return self.fit_iou
-        if self.chains < 2 or not np.isfinite(self.spread_mm):
-            return None
-        return float(np.exp(-self.spread_mm / UNRELIABLE_MM))
+        return estimate_quality(self.estimate).confidence
 
     @property
     def confidence_text(self) -> str:

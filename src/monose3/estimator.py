@@ -14,6 +14,7 @@ import torch
 
 from monose3.data.validation import check_batch, check_pose_batch
 from monose3.errors import Monose3Error
+from monose3.geometry.camera import padded_size
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser
 from monose3.method.evidence import Evidence
@@ -50,9 +51,7 @@ class Estimate:
     edge_support: np.ndarray | None = None  # [B] share of the estimate's outline on the image's edges
     edge_distance_px: np.ndarray | None = None  # [B] RMS distance of that outline to the edges, parser-view pixels
     doubts: list[list[str]] | None = None  # [B] why each estimate is unreliable, in words (empty: reliable)
-    fit_score: np.ndarray | None = (
-        None  # [B] the fit's score (IoU, keypoints, edges: fitting.best_fit); higher fits better
-    )
+    fit_score: np.ndarray | None = None  # [B] the fit's score (fitting.best_fit): higher fits better
 
     @classmethod
     def of_chains(cls, chains: Chains) -> Estimate:
@@ -66,7 +65,7 @@ def evidence_of(views: list[ViewEvidence], image_sizes: list[tuple[int, int]], i
     resized: :func:`~monose3.geometry.camera.standardize_image`), edge coordinates scaled alike."""
     boxes, keypoints = [], []
     for view, (w, h) in zip(views, image_sizes, strict=True):
-        scale = input_size[0] / max(w, round(h * input_size[0] / input_size[1]))
+        scale = input_size[0] / padded_size((w, h), input_size)[0]
         per_pixel = (view.box[2:] - view.box[:2]) / np.array(view.size)
         boxes.append(view.box * scale)
         keypoints.append((view.box[:2] + (view.keypoints + 0.5) * per_pixel) * scale - 0.5)

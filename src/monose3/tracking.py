@@ -106,7 +106,7 @@ def estimate_quality(est: Estimate, j: int = 0) -> Quality:
 
         spread = float(est.spread_mm[j])
         ok = spread <= UNRELIABLE_MM
-        return Quality(math.exp(-spread / UNRELIABLE_MM), ok, [] if ok else [f"chains {spread:.0f} mm apart"])
+        return Quality(math.exp(-spread / UNRELIABLE_MM), ok, [] if ok else ["chains disagree"])
     return Quality(None, None)
 
 
@@ -299,8 +299,8 @@ class Tracker:
         own flag and judged beside the track on one view, :meth:`PoseEstimator.judge`) and the
         track is not, or both are and it fits the view better. Of two unreliable poses the track stays."""
         judged = self.estimator.judge(image, K, q, np.stack([tracked.camera_from_base, other.camera_from_base]))
-        t_ok = bool(tracked.reliable) and estimate_quality(judged, 0).reliable
-        o_ok = bool(other.reliable) and estimate_quality(judged, 1).reliable
+        t_ok = bool(tracked.reliable) and bool(judged.reliable[0])
+        o_ok = bool(other.reliable) and bool(judged.reliable[1])
         t_score, o_score = (float(s) for s in judged.fit_score)
         return bool(o_ok and (not t_ok or o_score > t_score)), bool(o_ok)
 
@@ -311,9 +311,7 @@ class Tracker:
             fusion.offer(result.camera_from_base, joints)
         result.fused, result.fused_frames, result.converged = fusion.pose, len(fusion.poses), fusion.converged
         if fusion.converged and fusion.disagreeing == 0:
-            own = result.camera_from_base
-            result.alternative = own
-            result.camera_from_base = fusion.pose.copy()
+            result.alternative, result.camera_from_base = result.camera_from_base, fusion.pose.copy()
             result.mode, result.in_view = MODE_FUSED, True
             # The fused pose stands on many frames: this frame's doubts are its own fit's, not the answer's.
             result.quality = Quality(result.quality.confidence, True, [])

@@ -175,10 +175,9 @@ def check_one_camera(frames: Sequence) -> None:
         return
     first = frames[0]
     for frame in frames[1:]:
-        if tuple(frame.image_size) != tuple(first.image_size) or not np.allclose(
-            frame.K, first.K, rtol=1e-6, atol=1e-6
-        ):
-            what = "image size" if tuple(frame.image_size) != tuple(first.image_size) else "intrinsics"
+        other_size = tuple(frame.image_size) != tuple(first.image_size)
+        if other_size or not np.allclose(frame.K, first.K, rtol=1e-6, atol=1e-6):
+            what = "image size" if other_size else "intrinsics"
             raise Monose3Error(
                 f"--static-camera: frame {frame.name} has another {what} than frame {first.name}; a static "
                 "camera's frames share one camera: track them without --static-camera, or split the folder"

@@ -196,6 +196,18 @@ def crop_images(images, boxes, out_size: tuple[int, int]):
     return roi_align(images, rois.to(images.dtype), (out_h, out_w), 1.0, sampling_ratio=2, aligned=True)
 
 
+def padded_size(image_size: tuple[int, int], size: tuple[int, int]) -> tuple[int, int]:
+    """(w, h) of an ``image_size`` image zero-padded (right/bottom) to the aspect of ``size``, as
+    :func:`standardize_image` pads it before resizing to ``size``."""
+    (w, h), target = image_size, size[0] / size[1]
+    return max(w, int(round(h * target))), max(h, int(round(w / target)))
+
+
+def standardized_K(K: np.ndarray, image_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+    """K of an ``image_size`` image after :func:`standardize_image` to ``size``."""
+    return scale_K(K, padded_size(image_size, size), size)
+
+
 def standardize_image(image: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Bring an image to ``size`` (w, h): zero-pad to its aspect (right/bottom), then resize.
 
@@ -203,8 +215,7 @@ def standardize_image(image: np.ndarray, K: np.ndarray, size: tuple[int, int]) -
     """
     h, w = image.shape[:2]
     out_w, out_h = size
-    target = out_w / out_h
-    pad_w, pad_h = max(w, int(round(h * target))), max(h, int(round(w / target)))
+    pad_w, pad_h = padded_size((w, h), size)
     if (pad_w, pad_h) != (w, h):
         canvas = np.zeros((pad_h, pad_w, *image.shape[2:]), image.dtype)
         canvas[:h, :w] = image
@@ -212,4 +223,4 @@ def standardize_image(image: np.ndarray, K: np.ndarray, size: tuple[int, int]) -
     scale = out_w / pad_w
     if (pad_w, pad_h) != (out_w, out_h):
         image = cv2.resize(image, (out_w, out_h), interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
-    return image, scale_K(K, (pad_w, pad_h), (out_w, out_h))
+    return image, standardized_K(K, (w, h), size)

@@ -18,9 +18,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 
 from monose3.geometry.camera import crop_images, project
+from monose3.robot import RobotModel
 
 KEYPOINT_CHANNELS = 8  # keypoint maps per side (the Panda has 7, DREAM's Kuka 8); more are refused
 KEYPOINT_SIGMA = 1.5  # the blobs' standard deviation, crop pixels
@@ -39,6 +41,12 @@ class Evidence:
     def map(self, fn) -> Evidence:
         """The same evidence with ``fn`` applied to each tensor (``repeat_interleave``, ``to``...)."""
         return Evidence(**{f.name: fn(getattr(self, f.name)) for f in fields(self)})
+
+
+def keypoints_ref(robot: RobotModel, joints: np.ndarray, centroid: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """The robot's keypoints ``[B, K, 3]`` at ``joints`` ``[B, n]`` in the centroid frame (the base
+    frame moved to ``centroid`` ``[B, 3]``): what the evidence designs pull onto the parser's."""
+    return torch.from_numpy(robot.keypoints(joints)) - torch.as_tensor(centroid, dtype=torch.float64)[:, None]
 
 
 def keypoint_maps(uv: torch.Tensor, weights: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

@@ -20,7 +20,7 @@ from monose3.geometry.poses import make_pose
 from monose3.geometry.rotations import euler_xyz_to_matrix, rotation_angle
 from monose3.method.config import Config
 from monose3.method.denoiser import Denoiser
-from monose3.method.evidence import Evidence, evidence_crops, render_maps
+from monose3.method.evidence import Evidence, evidence_crops, keypoints_ref, render_maps
 from monose3.method.flow_pose import render_surface
 from monose3.method.pose_space import base_frame, centroid_frame
 from monose3.method.render_compare import crop_batch, crop_geometry, image_to_tensor
@@ -117,7 +117,7 @@ class ReverseDiffusion:
             points_ref=rep(torch.from_numpy(points - centroid[:, None])),
             centroid=rep(torch.from_numpy(centroid)),
             evidence=None if evidence is None else evidence.map(rep),
-            keypoints_ref=rep(torch.from_numpy(self.robot.keypoints(joints) - centroid[:, None])),
+            keypoints_ref=rep(keypoints_ref(self.robot, joints, centroid)),
         )
 
     def initial_poses(self, batch: PreparedBatch) -> torch.Tensor:

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from monose3.atomic import atomic_path, json_number, write_text
 from monose3.errors import Monose3Error
-from monose3.report.metrics import FAILURE_MM
+from monose3.report.metrics import FAILURE_MM, add_per_frame
 from monose3.report.overlays import pose_overlays
 from monose3.robot import RobotModel
 from monose3.tracking import MODE_FULL, MODE_FUSED, MODE_TRACK, StaticFusion, Tracker, TrackingPolicy, TrackStep
@@ -84,8 +84,8 @@ class TrackFrame:
         if not self.in_view:
             self.add_mm = math.inf
             return
-        kp = robot.keypoints(self.joints[None], self.camera_from_base[None])[0]
-        self.add_mm = float(1000.0 * np.linalg.norm(kp - self.gt_keypoints, axis=1).mean())
+        pred = robot.keypoints(self.joints[None], self.camera_from_base[None])
+        self.add_mm = 1000.0 * float(add_per_frame(pred, self.gt_keypoints[None])[0])
 
 
 def track_sequence(

@@ -30,9 +30,9 @@ from monose3.data.scenes.sampling import frame_rng, sample_scene
 from monose3.data.scenes.writer import make_renderer
 from monose3.errors import Monose3Error
 from monose3.estimator import evidence_of
-from monose3.geometry.camera import standardize_image
+from monose3.geometry.camera import standardized_K
 from monose3.method.config import Config
-from monose3.method.evidence import Evidence, evidence_crops, render_maps
+from monose3.method.evidence import Evidence, evidence_crops, keypoints_ref, render_maps
 from monose3.method.pose_space import base_frame
 from monose3.method.scheduler import PoseNoiser
 from monose3.perception.parser import RobotParser
@@ -105,13 +105,6 @@ def cache_sample(index: int, seed: int, model: RobotModel, renderer, parser: Rob
     }
 
 
-def standardized_K(K: np.ndarray, image_size: tuple[int, int], input_size: tuple[int, int]) -> np.ndarray:
-    """K of an ``image_size`` image after :func:`~monose3.geometry.camera.standardize_image`."""
-    w, h = image_size
-    blank = np.zeros((h, w, 1), np.uint8)
-    return standardize_image(blank, K, input_size)[1]
-
-
 class EvidenceCache:
     """Every sample of one or more cache folders, in memory (masks as uint8)."""
 
@@ -157,11 +150,6 @@ def parser_mistakes(evidence: Evidence, gen: torch.Generator) -> Evidence:
         elif torch.rand((), generator=gen) < MISPLACE_PROB:
             kp[i, k] += torch.randn(2, generator=gen, dtype=kp.dtype) * MISPLACE_PX
     return Evidence(mask, evidence.box, kp, conf)
-
-
-def keypoints_ref(robot: RobotModel, joints: np.ndarray, centroid: torch.Tensor) -> torch.Tensor:
-    """The robot's keypoints ``[B, K, 3]`` in the centroid frame (what the evidence designs pull)."""
-    return torch.from_numpy(robot.keypoints(joints)) - centroid[:, None].to(torch.float64)
 
 
 def evidence_batch(samples: dict[str, torch.Tensor], robot: RobotModel, renderer: RobotRenderer,

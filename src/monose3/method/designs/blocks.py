@@ -32,9 +32,10 @@ def coord_channels(b: int, h: int, w: int, like: torch.Tensor) -> torch.Tensor:
     return grid[None].expand(b, 2, h, w)
 
 
-def zero_head(in_features: int) -> nn.Sequential:
-    """MLP to the 9 raw outputs whose last layer is zero: the identity update at init."""
-    head = nn.Sequential(nn.Linear(in_features, 256), nn.ReLU(inplace=True), nn.Linear(256, NUM_OUTPUTS))
+def zero_head(in_features: int, outputs: int = NUM_OUTPUTS, hidden: int = 256) -> nn.Sequential:
+    """MLP (one hidden layer) whose last layer is zero: to the 9 raw outputs, the identity update
+    at init; to other outputs (a solve's weights, a prior), their value at zero."""
+    head = nn.Sequential(nn.Linear(in_features, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, outputs))
     nn.init.zeros_(head[2].weight)
     nn.init.zeros_(head[2].bias)
     return head
@@ -67,10 +68,10 @@ def local_correlation(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Te
     return torch.stack([(a * b[:, :, i : i + h, j : j + w]).sum(1) for i in span for j in span], dim=1)
 
 
-def conv_block(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)
-    )
+def conv_block(c_in: int, c_out: int, stride: int = 1, groups: int | None = None) -> nn.Sequential:
+    """3x3 convolution, batch norm (or group norm over ``groups`` groups: small batches) and ReLU."""
+    norm = nn.BatchNorm2d(c_out) if groups is None else nn.GroupNorm(groups, c_out)
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False), norm, nn.ReLU(inplace=True))
 
 
 def upsample(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:

@@ -21,6 +21,7 @@ from monose3.method.designs.blocks import (
     resnet,
     to_net_range,
     upsample,
+    zero_head,
 )
 from monose3.method.flow_pose import Surface, pose_from_field
 from monose3.method.update import true_update, update_to_raw
@@ -123,9 +124,7 @@ class FlowSolveNet(CostVolumeNet):
         nn.init.zeros_(self.field.bias)
         nn.init.constant_(self.field.bias[2:], math.log(INITIAL_FIELD_SCALE))
         emb = config.time_embedding_dim
-        self.prior = nn.Sequential(nn.Linear(emb, 32), nn.ReLU(inplace=True), nn.Linear(32, 6))
-        nn.init.zeros_(self.prior[2].weight)
-        nn.init.zeros_(self.prior[2].bias)
+        self.prior = zero_head(emb, 6, hidden=32)
 
     def prior_precision(self, emb: torch.Tensor) -> torch.Tensor:
         """Precisions ``[B, 6]`` of the solve's prior on the update at each sample's t (learned:

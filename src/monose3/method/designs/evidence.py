@@ -19,14 +19,15 @@ from torch import nn
 from monose3.geometry.pose_solve import solve_pose
 from monose3.geometry.poses import make_pose
 from monose3.method.config import NetworkConfig
-from monose3.method.denoiser import Denoiser, DenoiserOutput, timestep_of
-from monose3.method.designs.blocks import zero_head
+from monose3.method.denoiser import NUM_OUTPUTS, Denoiser, DenoiserOutput, timestep_of
+from monose3.method.designs.blocks import conv_block, zero_head
 from monose3.method.evidence import EVIDENCE_CHANNELS, KEYPOINT_CHANNELS, KEYPOINT_SIGMA
 from monose3.method.flow_pose import Surface, sample_field
 from monose3.method.pose_space import MIN_DEPTH
 from monose3.method.update import true_update, update_to_raw
 
 WIDTHS = (32, 64, 128, 128, 256)  # one 3x3 convolution each; all but the first halve the resolution
+GROUPS = 8  # group norm: the batch statistics of a few samples (tracking, chains) would swing a batch norm
 # evidence-solve: the solve's prior on the update (log precisions per rotation-vector radian and
 # unit of depth) starts negligible beside the keypoints' pull, and moves PRIOR_GAIN times as fast
 # as its weights; a keypoint's weight starts at its blob's share (exp(0)) and learns per sample.
@@ -45,28 +46,25 @@ INITIAL_FIELD_LOG_SCALE = math.log(0.5)
 FIELD_T, FIELD_T_WIDTH = 12.0, 3.0
 
 
-def conv_block(cin: int, cout: int, stride: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.GroupNorm(8, cout), nn.ReLU(inplace=True))
-
-
 class EvidenceNet(Denoiser):
     """A plain CNN over the evidence side, the render side (:data:`EVIDENCE_CHANNELS` each) and
     the timestep embedding, regressing the raw outputs of the update (Eq. 9)."""
 
     inputs = "parser"
     channels = EVIDENCE_CHANNELS
+    outputs = NUM_OUTPUTS  # of its head: Eq. 9's raw outputs
 
     def __init__(self, config: NetworkConfig, pretrained: bool = True):  # noqa: ARG002 - trained from scratch
         super().__init__(config)
         channels = 2 * EVIDENCE_CHANNELS + config.time_embedding_dim
         layers, cin = [], channels
         for i, cout in enumerate(WIDTHS):
-            layers.append(conv_block(cin, cout, 1 if i == 0 else 2))
+            layers.append(conv_block(cin, cout, 1 if i == 0 else 2, GROUPS))
             cin = cout
         self.trunk = nn.Sequential(*layers)
         w, h = config.render_size
         cells = -(-w // 2 ** (len(WIDTHS) - 1)) * -(-h // 2 ** (len(WIDTHS) - 1))
-        self.head = zero_head(WIDTHS[-1] * cells)
+        self.head = zero_head(WIDTHS[-1] * cells, self.outputs)
 
     def compare(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface) -> DenoiserOutput:
         b, _, h, w = render.shape
@@ -106,22 +104,16 @@ class EvidenceSolve(EvidenceNet):
 
     rotation_outputs = ("6d",)  # the raw outputs are those of a solved pose, never regressed
     predicts_field = True
+    outputs = 3 * KEYPOINT_CHANNELS  # of its head: per keypoint a residual (x, y) in render widths and a log-weight
 
     def __init__(self, config: NetworkConfig, pretrained: bool = True):
         super().__init__(config, pretrained)
-        features = self.head[0].in_features
-        self.head = zero_head(features)
-        self.head[2] = nn.Linear(256, 3 * KEYPOINT_CHANNELS)  # residual (x, y) in render widths, log-weight
-        nn.init.zeros_(self.head[2].weight)
-        nn.init.zeros_(self.head[2].bias)
-        self.field = nn.Sequential(conv_block(WIDTHS[FIELD_BLOCK], 64, 1), nn.Conv2d(64, 3, 1))
+        self.field = nn.Sequential(conv_block(WIDTHS[FIELD_BLOCK], 64, 1, GROUPS), nn.Conv2d(64, 3, 1))
         nn.init.zeros_(self.field[1].weight)
         nn.init.zeros_(self.field[1].bias)
         nn.init.constant_(self.field[1].bias[2:], INITIAL_FIELD_LOG_SCALE)
         emb = config.time_embedding_dim
-        self.prior = nn.Sequential(nn.Linear(emb, 32), nn.ReLU(inplace=True), nn.Linear(32, 6))
-        nn.init.zeros_(self.prior[2].weight)
-        nn.init.zeros_(self.prior[2].bias)
+        self.prior = zero_head(emb, 6, hidden=32)
 
     def compare(self, render: torch.Tensor, crop: torch.Tensor, emb: torch.Tensor, surface: Surface) -> DenoiserOutput:
         if surface.keypoints_ref is None:
