@@ -8,7 +8,8 @@ and a slowly orbiting camera on each, ``--frames`` long. Each goes through
 
 * ``track``: the default policy (``monose3 track``);
 * ``static``: ``--static-camera --refine-at-end`` (static-camera sequences only);
-* ``single``: the full estimate of every ``--single-every``-th frame alone (the reference).
+* ``single``: the full estimate of every ``--single-every``-th frame alone (the reference;
+  ``track``'s median on the same frames is given as a ratio to it).
 
 Per run: median ADD, frames off by more than 50 mm (for ``static``: also after the fused pose
 converged, and the frame it converged at), re-estimates that replaced the track and left the
@@ -136,12 +137,19 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
+def same_frames_ratio(track_rows: list[dict], single: dict, every: int) -> float:
+    """The track's median ADD on the single-frame reference's frames over the reference's."""
+    return float(np.median([r["add_mm"] for r in track_rows[::every]]) / single["median_add_mm"])
+
+
 def fmt(s: dict) -> str:
     line = (f"median {s['median_add_mm']:6.1f} mm, >50 mm {s['over_50mm']:2d}/{s['frames']}, "
             f"flag {s['caught']}/{s['bad']} caught, {s['false_alarms']}/{s['good']} false alarms")  # fmt: skip
     if "reestimates" in s:
         line += (f", re-estimates {s['reestimates']} (replaced the track {s['replaced_track']}, made worse "
                  f"{s['made_worse']}), {s['tracked_fps']:.1f} tracked frames/s")  # fmt: skip
+    if "ratio_to_single" in s:
+        line += f", median {s['ratio_to_single']:.2f}x the single frames' on their frames"
     if "converged_at" in s:
         line += f", converged at frame {s['converged_at']} (>50 mm after: {s['over_50mm_after_convergence']})"
     return line
@@ -175,10 +183,12 @@ def run(argv: list[str] | None) -> int:
             low = json.loads((folder / "_sequence.json").read_text())["low_contrast"]
             frames = list(open_dataset(folder, estimator.robot))
             name = f"{camera} {profile} seed {seed}" + (" (low contrast)" if low else "")
-            runs = {"track": summarise(run_tracking(estimator, frames, TrackingPolicy()))}
+            track_rows = run_tracking(estimator, frames, TrackingPolicy())
+            runs = {"track": summarise(track_rows)}
             if camera == "static":
                 runs["static"] = summarise(run_tracking(estimator, frames, TrackingPolicy(static_camera=True)))
             runs["single"] = summarise(run_single(estimator, frames, args.single_every))
+            runs["track"]["ratio_to_single"] = same_frames_ratio(track_rows, runs["single"], args.single_every)
             results[name] = runs
             print(name)
             for run, s in runs.items():

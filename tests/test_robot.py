@@ -85,6 +85,20 @@ def test_fk_is_not_trivially_constant(models):
     np.testing.assert_allclose(poses[:, model.link_index[model.root]], np.broadcast_to(np.eye(4), (2, 4, 4)))
 
 
+def test_fk_of_repeated_and_alternating_rows(models):
+    """Kinematics solve each distinct row once and keep the last call's answer: a batch of
+    repeated rows, or calls that alternate between configurations, still get their own poses."""
+    model = models["panda"]
+    q = model.random_joints(np.random.default_rng(2), 2)
+    each = [model.link_poses(q[i : i + 1])[0] for i in range(2)]
+    mixed = model.link_poses(q[[1, 0, 1, 1, 0]])
+    for got, i in zip(mixed, [1, 0, 1, 1, 0], strict=True):
+        np.testing.assert_array_equal(got, each[i])
+    mixed[0] += 1.0  # the caller's copy: the kept answer is not changed
+    np.testing.assert_array_equal(model.link_poses(q[1:2])[0], each[1])
+    np.testing.assert_array_equal(model.link_poses(q[0:1])[0], each[0])
+
+
 def test_panda_finger_mimic_follows_first_finger(models):
     model = models["panda"]
     q = model.joint_vector([0.0] * 7)

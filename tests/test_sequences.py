@@ -11,7 +11,17 @@ import pytest
 
 from monose3.apps import cli
 from monose3.data.dream import DreamDataset
-from monose3.data.scenes.sequences import SEQUENCE_FILE, SequenceConfig, smooth_trajectory, write_sequence
+from monose3.data.scenes.profiles import get_profile
+from monose3.data.scenes.sampling import frame_rng
+from monose3.data.scenes.sequences import (
+    SEQUENCE_FILE,
+    SequenceConfig,
+    frame_in_view,
+    in_view_fraction,
+    sample_sequence,
+    smooth_trajectory,
+    write_sequence,
+)
 from monose3.errors import Monose3Error
 from monose3.geometry.rotations import rotation_angle
 
@@ -41,6 +51,23 @@ def test_a_sequence_keeps_its_camera_and_moves_the_robot_smoothly(tmp_path, pand
     for f in frames:  # the annotation is the forward kinematics under the written pose
         assert np.allclose(panda.keypoints(f.joints[None], f.pose[None])[0], f.keypoints_3d, atol=1e-5)
     assert (out / "000000.rgb.jpg").stat().st_size > 1000
+
+
+def test_every_frame_keeps_the_robot_in_view_not_only_the_joint_targets(panda):
+    """Off-centre hard scenes with an orbiting camera: the way between two targets and the
+    orbit can carry the robot's centroid out of the picture, where any estimate counts as out of
+    view; the sampler draws a target again until every frame keeps the robot in view."""
+    hard, size = get_profile("hard"), (320, 240)
+    for seed in range(3):
+        path = sample_sequence(frame_rng(seed, 0), panda, hard, size, SequenceConfig(frames=40, camera="moving"))
+        for q, pose in zip(path["joints"], path["poses"], strict=True):
+            assert frame_in_view(panda, q, pose, path["K"], size, hard)
+    # the check is not vacuous: the robot turned away from this camera leaves the picture
+    q, pose = path["joints"][0], path["poses"][0].copy()
+    pose[0, 3] += 5.0
+    assert in_view_fraction(panda, q, pose, path["K"], size) == 0.0 and not frame_in_view(
+        panda, q, pose, path["K"], size, hard
+    )
 
 
 def test_generate_sequence_command_and_its_refusals(tmp_path, capsys):

@@ -117,6 +117,12 @@ def test_a_reestimate_replaces_the_track_only_when_it_fits_better(panda):
     )
     step = run(worse, 2, TrackingPolicy(reinit_every=1))[1]
     assert (step.mode, step.reason, step.decision) == (MODE_TRACK, "periodic", KEPT_TRACK)
+    # So does a doubted track: a reliable re-estimate that fits the view worse would make the frame worse.
+    doubted = Scripted(
+        panda, tracks={1: (200.0, False)}, fulls={1: (5.0, True, True)}, judged={1: ((False, 0.8), (True, 0.7))}
+    )
+    step = run(doubted, 2, TrackingPolicy(recheck_every=1))[1]
+    assert (step.mode, step.reason, step.decision) == (MODE_TRACK, "jump", KEPT_TRACK)
     # A re-estimate that loses the robot keeps the track, without judging.
     lost = Scripted(panda, tracks={1: (200.0, False)}, fulls={1: (0.0, False, False)})
     step = run(lost, 2, TrackingPolicy(recheck_every=1))[1]

@@ -34,7 +34,11 @@ from monose3.robot.renderer import RobotRenderer
 # (hard) and 16016 (reallike), interleaved: 4 + 5 ends at a median 22.8 / 3.0 mm with 41 / 1 %
 # of frames more than 30 mm off, 4 + 8 at 16.0 / 2.5 mm and 38 / 0 % in 18 % more time, 6 + 8
 # at 15.8 / 2.5 mm and 34 / 0 % in 23 % more, 6 + 12 at 13.4 / 2.1 mm and 32 / 1 % in 48 % more.
-TRACK_ITERATIONS = (6, 8)
+# With the robot's inner edges pulled in the fine pass (below), 4 + 8 tracked 8 sequences of their
+# own (benchmarks/sequences.py's kinds, seeds 41000-41007) to a median 1.12x the single-frame
+# fit's (geometric mean over the sequences; at most 1.37x), 6 + 8 to 1.17x (at most 1.43x),
+# against 1.47x (at most 2.96x) for 6 + 8 without them; 4 + 8 in 5 % less time than 6 + 8.
+TRACK_ITERATIONS = (4, 8)
 
 
 def view_around(parser: RobotParser, robot: RobotModel, image: np.ndarray, K: np.ndarray, joints: np.ndarray,
@@ -76,16 +80,18 @@ def track_pose(
     the view's PnP hypotheses, scored as the search scores them (a few small renders): between
     frames the robot can move further than a few iterations reach, and a lost track is found again.
     The view's mask is not mirror-averaged: on the held-out frames tracking was no more accurate
-    with it, and 10 % slower (benchmarks/accuracy.py). Nor does it pull the robot's inner edges
-    (``fitting.INNER_EDGE_WEIGHT``): from 2 cm / 3 deg off, in 4 + 5 iterations (then the default), they ended
-    further (held-out median 3.6 -> 3.8 mm reallike, 19.0 -> 21.0 mm hard) at 10 % more time;
-    nor does it score them (``best_fit``'s ``inner_edges``): its one refined pose needs no choice."""
+    with it, and 10 % slower (benchmarks/accuracy.py). The fine pass pulls the robot's inner edges
+    (``fitting.INNER_EDGE_WEIGHT``) as the full fit does: from a pose 2 cm / 3 deg off, in 4 + 5
+    iterations, they had ended further (held-out median 3.6 -> 3.8 mm reallike, 19.0 -> 21.0 mm
+    hard), but on sequences, where each frame starts a few millimetres off, they hold the track
+    to the single-frame fit's precision (see :data:`TRACK_ITERATIONS`). Nor does it score them
+    (``best_fit``'s ``inner_edges``): its one refined pose needs no choice."""
     view = view_around(parser, robot, image, K, joints, previous, mirror=False)
     if view.robot_fraction < MIN_MASK_FRACTION:
         return not_found(view)
     kp_base = robot.keypoints(joints[None])[0]
     start = best_hypotheses(renderer, joints, np.stack([previous, *pnp_hypotheses(view, kp_base)]), view, kp_base, 1)
-    poses = refine_coarse_to_fine(renderer, joints, start, view, kp_base, *iterations, inner_edges=False)
+    poses = refine_coarse_to_fine(renderer, joints, start, view, kp_base, *iterations)
     fit = best_fit(renderer, joints, poses, view, kp_base, inner_edges=False)
     # A tracked fit has no restarts whose spread tells how firmly the image holds it; how far it
     # moved from the previous frame's pose stands in (a track that slips jumps). On 8 sequences of

@@ -6,7 +6,7 @@ with its distractor shapes (drawn once; with the profile's ``low_contrast_prob``
 near the robot's own colours, a white robot before a white wall); a moving camera orbits the
 robot's centroid about the vertical at ``orbit_deg`` per frame and the background pans with it.
 What changes: the joints (a new target pose every ``keyframe_every`` frames, reached by a
-smoothstep, each target keeping the robot in view), the occluders, colour jitter, blur, noise
+smoothstep, every frame keeping the robot in view), the occluders, colour jitter, blur, noise
 and JPEG quality, as in single frames. Frame ``i``'s pixels draw from ``frame_rng(seed, i + 1)``,
 the scene from ``frame_rng(seed, 0)``. ``_sequence.json`` records how it was made.
 """
@@ -89,28 +89,42 @@ def orbit(pose: np.ndarray, centre: np.ndarray, degrees: np.ndarray) -> np.ndarr
 def sample_sequence(rng: np.random.Generator, model: RobotModel, profile: SceneProfile,
                     size: tuple[int, int], config: SequenceConfig) -> dict:  # fmt: skip
     """The scene, camera path and joint trajectory of one sequence: ``joints`` ``[N, n]``,
-    ``poses`` ``[N, 4, 4]`` (camera-from-base), ``K``, ``lighting``, ``centre``."""
+    ``poses`` ``[N, 4, 4]`` (camera-from-base), ``K``, ``lighting``, ``centre``. Every frame,
+    not only the joint targets, keeps the robot in view (:func:`frame_in_view`): a target is
+    drawn again until the way to it does."""
     count = math.ceil((config.frames - 1) / config.keyframe_every) + 1
+    step = config.orbit_deg if config.camera == "moving" else 0.0
     for _ in range(MAX_TRIES):
         scene = sample_scene(rng, model, profile, size)
+        centre = model.centroid(model.surface_points(scene.joints[None]))[0]
+        poses = orbit(scene.pose, centre, step * np.arange(config.frames))
         keys = [scene.joints]
         while len(keys) < count:
+            first = (len(keys) - 1) * config.keyframe_every
+            frames = range(first + 1, min(first + config.keyframe_every, config.frames - 1) + 1)
             for _ in range(MAX_TRIES):
                 q = model.random_joints(rng, 1)[0]
-                if in_view_fraction(model, q, scene.pose, scene.K, size) >= profile.min_visible:
+                way = smooth_trajectory(np.stack([keys[-1], q]), config.keyframe_every + 1, config.keyframe_every)
+                if all(frame_in_view(model, way[i - first], poses[i], scene.K, size, profile) for i in frames):
                     keys.append(q)
                     break
             else:
                 break
         if len(keys) == count:
-            break
-    else:
-        raise Monose3Error(f"profile {profile.name}: no camera kept the robot in view along a sequence")
-    joints = smooth_trajectory(np.stack(keys), config.frames, config.keyframe_every)
-    centre = model.centroid(model.surface_points(joints[:1]))[0]
-    step = config.orbit_deg if config.camera == "moving" else 0.0
-    poses = orbit(scene.pose, centre, step * np.arange(config.frames))
-    return {"joints": joints, "poses": poses, "K": scene.K, "lighting": scene.lighting, "centre": centre}
+            joints = smooth_trajectory(np.stack(keys), config.frames, config.keyframe_every)
+            return {"joints": joints, "poses": poses, "K": scene.K, "lighting": scene.lighting, "centre": centre}
+    raise Monose3Error(f"profile {profile.name}: no camera kept the robot in view along a sequence")
+
+
+def frame_in_view(model: RobotModel, joints: np.ndarray, pose: np.ndarray, K: np.ndarray, size,
+                  profile: SceneProfile) -> bool:  # fmt: skip
+    """Whether a frame shows the profile's ``min_visible`` share of the robot with its centroid
+    inside the image: where the centroid leaves it, an estimate counts as out of view, however
+    good (``reliability.pose_in_view``)."""
+    if in_view_fraction(model, joints, pose, K, size) < profile.min_visible:
+        return False
+    u, v = project(transform_points(pose, model.centroid(model.surface_points(joints[None])))[0][None], K)[0]
+    return bool(-0.5 <= u <= size[0] - 0.5 and -0.5 <= v <= size[1] - 0.5)
 
 
 def sequence_background(rng: np.random.Generator, profile: SceneProfile, size: tuple[int, int], first_render,
