@@ -52,7 +52,8 @@ def fit_estimate(poses, reliable, scores=None, in_view=None) -> Estimate:
 
 
 class Scripted:
-    """A fit-like estimator: ``track`` returns ``tracks[frame]`` (pose offset in mm, reliable),
+    """A fit-like estimator: ``track`` returns ``tracks[frame]`` (pose offset in mm or None:
+    no robot found, reliable),
     ``estimate`` returns ``fulls[frame]`` (same, or None: at the truth, reliable), ``judge``
     returns the reliable flags and scores of ``judged[frame]``; every call is recorded."""
 
@@ -70,6 +71,8 @@ class Scripted:
         self.calls.append((self.frame, "track"))
         self.starts.append(previous[0])
         mm, ok = self.tracks.get(self.frame, (0.0, True))
+        if mm is None:  # the parser found no robot around the previous pose
+            return fit_estimate([np.full((4, 4), np.nan)], False, in_view=[False])
         return fit_estimate([moved(previous[0], mm)], ok)
 
     def judge(self, image, K, joints, poses):
@@ -127,6 +130,13 @@ def test_a_reestimate_replaces_the_track_only_when_it_fits_better(panda):
     lost = Scripted(panda, tracks={1: (200.0, False)}, fulls={1: (0.0, False, False)})
     step = run(lost, 2, TrackingPolicy(recheck_every=1))[1]
     assert step.mode == MODE_TRACK and step.in_view and (1, "judge") not in lost.calls
+
+
+def test_a_track_that_found_no_robot_takes_the_reestimate_without_judging_a_missing_pose(panda):
+    est = Scripted(panda, tracks={1: (None, False)}, fulls={1: (5.0, False, True)})
+    step = run(est, 2)[1]
+    assert (step.mode, step.reason) == (MODE_FULL, "out of view") and (1, "judge") not in est.calls
+    assert np.allclose(step.camera_from_base, moved(POSE, 5.0)) and step.in_view
 
 
 def test_a_doubted_big_step_soon_after_a_full_estimate_is_judged_against_the_previous_pose(panda):

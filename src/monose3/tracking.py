@@ -266,8 +266,8 @@ class Tracker:
             return held
         full = self._full(image, K, q, reason)
         full.step_mm, full.step_deg = step_mm, step_deg
-        if not hasattr(self.estimator, "judge"):
-            return full
+        if not hasattr(self.estimator, "judge") or not np.isfinite(pose).all():
+            return full  # (no pose tracked: the parser found no robot around the previous one)
         replace, full_ok = self._better(image, K[0], q[0], tracked, full) if full.in_view else (False, False)
         if replace:
             full.alternative = tracked.camera_from_base
