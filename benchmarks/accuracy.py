@@ -17,7 +17,7 @@ split for the default). Then:
 * the ``reliable`` flag (``perception.reliability.fit_doubts``) against ADD > ``--bad-mm``: recall of
   the bad estimates and false alarms among the good ones;
 * tracking: ``PoseEstimator.track`` from the true pose moved by 2 cm / 3 deg per axis (images/s,
-  median ADD, the share flagged reliable).
+  median ADD, the share flagged reliable); with ``--tracking-only``, that alone (the same starts).
 
 The sets are the README's (``monose3 generate --renderer tiny``: rendered by pybullet, never
 trained on):
@@ -101,17 +101,19 @@ def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
     for i in tqdm(range(n), desc=Path(folder).name):
         frame = frames[i]
         image = frame.load_image()
-        for stage in STAGES:
-            pose, timings, doubted = run_stage(estimator, frame, image, stage)
-            adds[stage].append(frame_add(estimator, frame, pose))
-            for key, value in timings.items():
-                seconds[f"{stage}/{key}"].append(value)
-            if stage == STAGES[-1]:
-                flagged.append(doubted)
-        start = moved(frame.pose, rng, args.start_deg, args.start_cm)
-        fit = refine_from(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints, start)
-        refine["start"].append(frame_add(estimator, frame, start))
-        refine["final"].append(frame_add(estimator, frame, fit.pose))
+        start = moved(frame.pose, rng, args.start_deg, args.start_cm)  # drawn either way: tracking's starts stay
+        if not args.tracking_only:
+            for stage in STAGES:
+                pose, timings, doubted = run_stage(estimator, frame, image, stage)
+                adds[stage].append(frame_add(estimator, frame, pose))
+                for key, value in timings.items():
+                    seconds[f"{stage}/{key}"].append(value)
+                if stage == STAGES[-1]:
+                    flagged.append(doubted)
+            parts = (estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
+            fit = refine_from(*parts, start)
+            refine["start"].append(frame_add(estimator, frame, start))
+            refine["final"].append(frame_add(estimator, frame, fit.pose))
         near = perturb_poses(frame.pose[None], rng, 0.02, 3.0)
         tick = time.perf_counter()
         tracked = estimator.track([image], frame.K[None], frame.joints[None], near)
@@ -124,6 +126,13 @@ def evaluate_set(estimator, folder: str, limit: int, args) -> dict:
 
 
 def summarise(adds, seconds, flagged, refine, tracking, bad_m: float) -> dict:
+    tracked = {
+        "images_per_s": float(1 / np.mean(tracking["seconds"])),
+        "median_add_mm": float(np.median(tracking["add"]) * 1000),
+        "reliable_share": float(np.mean(tracking["reliable"])),
+    }
+    if not adds:  # --tracking-only
+        return {"tracking": tracked}
     rows = {}
     for stage in STAGES:
         a = np.asarray(adds[stage])
@@ -147,15 +156,16 @@ def summarise(adds, seconds, flagged, refine, tracking, bad_m: float) -> dict:
             "recall": float((flagged & bad).sum() / max(1, bad.sum())),
             "false_alarms": float((flagged & ~bad).sum() / max(1, (~bad).sum())),
         },
-        "tracking": {
-            "images_per_s": float(1 / np.mean(tracking["seconds"])),
-            "median_add_mm": float(np.median(tracking["add"]) * 1000),
-            "reliable_share": float(np.mean(tracking["reliable"])),
-        },
+        "tracking": tracked,
     }
 
 
 def print_report(results: dict[str, dict], args) -> None:
+    if args.tracking_only:
+        for name, r in results.items():
+            print(f"{name} ({r['frames']['count']} frames, digest {r['frames']['digest']}):")
+            print_tracking(r["tracking"])
+        return
     names = list(results)
     width = max(map(len, STAGES)) + 1
     print(f"{'stage':<{width}}" + "".join(f"{n + ' AUC':>22}{'median mm':>11}{'s/img':>7}" for n in names))
@@ -180,11 +190,14 @@ def print_report(results: dict[str, dict], args) -> None:
             f"  reliable flag vs ADD > {args.bad_mm:g} mm: recall {100 * flag['recall']:.0f} % "
             f"of {flag['bad']} bad, false alarms {100 * flag['false_alarms']:.0f} % of {flag['good']} good"
         )
-        track = r["tracking"]
-        print(
-            f"  tracking from truth moved 2 cm / 3 deg per axis: {track['images_per_s']:.1f} images/s, "
-            f"median ADD {track['median_add_mm']:.1f} mm, {100 * track['reliable_share']:.0f} % reliable"
-        )
+        print_tracking(r["tracking"])
+
+
+def print_tracking(track: dict) -> None:
+    print(
+        f"  tracking from truth moved 2 cm / 3 deg per axis: {track['images_per_s']:.1f} images/s, "
+        f"median ADD {track['median_add_mm']:.1f} mm, {100 * track['reliable_share']:.0f} % reliable"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -197,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--start-cm", type=float, default=3.0)
     p.add_argument("--bad-mm", type=float, default=30.0)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--tracking-only", action="store_true", help="measure tracking alone (minutes, not an hour)")
     p.add_argument("--json")
     args = p.parse_args(argv)
 

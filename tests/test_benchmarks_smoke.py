@@ -236,6 +236,43 @@ def test_accuracy_small(tmp_path: Path, tiny_dream: Path, capsys, keep_threads: 
     assert data["frames"]["count"] == 2 and f"digest {data['frames']['digest']}" in out
 
 
+def test_accuracy_tracking_only_measures_tracking_from_the_same_starts(tmp_path: Path, tiny_dream: Path, capsys,
+                                                                       keep_threads: None) -> None:  # fmt: skip
+    acc = load("accuracy")
+    args = ["--data", str(tiny_dream), "--limit", "2", "--tracking-only", "--json", str(tmp_path / "t.json")]
+    assert acc.main(args) == 0
+    out = capsys.readouterr().out
+    assert "images/s" in out and "end closer" not in out and not any(stage in out for stage in acc.STAGES)
+    data = json.loads((tmp_path / "t.json").read_text())[tiny_dream.name]
+    assert set(data) == {"tracking", "frames"} and data["frames"]["count"] == 2
+
+
+def test_depth_bias_reads_the_line_of_sight_and_runs_small(tmp_path: Path, tiny_dream: Path, capsys,
+                                                           keep_threads: None) -> None:  # fmt: skip
+    bias = load("depth_bias")
+    assert bias.main(["--data", str(tiny_dream), "--limit", "1", "--json", str(tmp_path / "b.json")]) == 0
+    data = json.loads((tmp_path / "b.json").read_text())[tiny_dream.name]
+    assert {"fit", *bias.REFINEMENTS, *bias.SYNTHETIC} <= set(data) and data["frames"] == 1
+    assert "outline edges alone" in capsys.readouterr().out
+    # the measure itself: the truth is 0, the truth pushed 1 % further along the line of sight +1 %
+    from monose3.api import load_estimator
+    from monose3.data.datasets import open_dataset
+
+    estimator = load_estimator()
+    frame = open_dataset(str(tiny_dream), estimator.robot)[0]
+    assert bias.line_of_sight_mm(estimator, frame, frame.pose) == pytest.approx(0.0, abs=1e-9)
+    further = frame.pose.copy()
+    further[:3, 3] += 0.01 * (frame.pose[:3, :3] @ estimator.robot.centroid(
+        estimator.robot.surface_points(frame.joints[None])[0]) + frame.pose[:3, 3])  # fmt: skip
+    assert bias.line_of_sight_mm(estimator, frame, further) == pytest.approx(0.01 * bias.distance_mm(estimator, frame))
+
+
+def test_sequences_compare_the_track_with_single_frames_on_their_frames() -> None:
+    seq = load("sequences")
+    rows = [{"add_mm": a} for a in (1.0, 50.0, 50.0, 3.0, 50.0, 50.0, 5.0)]  # frames 0, 3, 6: 1, 3, 5
+    assert seq.same_frames_ratio(rows, {"median_add_mm": 2.0}, 3) == pytest.approx(1.5)
+
+
 @pytest.mark.slow
 def test_reliable_flag_small(tiny_dream: Path, capsys, keep_threads: None) -> None:
     """The model is fitted on a folder's fits and the shipped flag's recall and false alarms reported there."""
