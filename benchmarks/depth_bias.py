@@ -6,7 +6,7 @@ the distance, per DREAM folder:
 * from the true pose, the refinement (``fitting.refine_coarse_to_fine``, no local search) on
   the parser's view around it, term by term: the mask and keypoints alone, with the image's
   outline edges, with the inner edges too (the default), and the outline edges alone (mask
-  and keypoints weighted 0): where each term's fixed point lies;
+  and keypoints weighted 0, at the view's resolution only): where each term's fixed point lies;
 * the outline edges alone on views whose pixels are replaced by a render of the robot at the
   true pose before a grey background: rendered at the view's resolution (the image is the
   fit's own render), supersampled 2x and area-averaged (antialiased, as a camera sees an edge),
@@ -14,9 +14,13 @@ the distance, per DREAM folder:
   sharpness, with nothing else wrong.
 
 A bias is systematic where its mean is many standard errors from 0 and has one sign across
-folders. Frames: the first ``--limit`` of each folder (``monose3 generate`` sets).
+folders. Frames: the first ``--limit`` of each folder. The figures in docs/ACCURACY.md: the
+README's held-out sets and two made for this with the training renderer,
 
-    python benchmarks/depth_bias.py --data data/bias_reallike data/bias_hard --limit 40 --json out.json
+    monose3 generate --out data/bias_reallike --num 40 --seed 45045 --profile reallike
+    monose3 generate --out data/bias_hard --num 40 --seed 46046 --profile hard
+    python benchmarks/depth_bias.py --data data/bias_reallike data/bias_hard data/reallike_tiny \
+        data/hard_tiny --limit 40 --json docs/results/depth_bias.json
 """
 
 from __future__ import annotations
@@ -66,15 +70,17 @@ def distance_mm(estimator, frame) -> float:
 
 
 def refined(estimator, frame, view: ViewEvidence, edges: bool, inner: bool, weighted: bool) -> np.ndarray:
-    """The refinement from the true pose; ``weighted`` False leaves the outline edges alone."""
+    """The refinement from the true pose; ``weighted`` False leaves the outline edges alone, at
+    the view's resolution only (the coarse pass reads the mask)."""
     kp_base = estimator.robot.keypoints(frame.joints[None])[0]
+    args = (estimator.renderer, frame.joints, frame.pose[None])
+    if weighted:
+        return fitting.refine_coarse_to_fine(*args, view, kp_base, edges=edges, inner_edges=inner)[0]
     share = fitting.MASK_SHARE_WITH_EDGES
-    if not weighted:
-        view = dataclasses.replace(view, confidence=view.confidence * 0)
-        fitting.MASK_SHARE_WITH_EDGES = 0.0
+    fitting.MASK_SHARE_WITH_EDGES = 0.0
     try:
-        return fitting.refine_coarse_to_fine(estimator.renderer, frame.joints, frame.pose[None], view, kp_base,
-                                             edges=edges, inner_edges=inner)[0]  # fmt: skip
+        alone = dataclasses.replace(view, confidence=view.confidence * 0)
+        return fitting.refine_poses(*args, alone, kp_base, edges=True)[0]
     finally:
         fitting.MASK_SHARE_WITH_EDGES = share
 
