@@ -55,18 +55,17 @@ REFINEMENTS = {  # name: (edges, inner edges, mask and keypoints weighted)
 SYNTHETIC = ("render at view resolution", "render 2x, area-averaged", f"render blurred {BLUR_PX} px")
 
 
+def centroid_distance_mm(estimator, frame, pose: np.ndarray) -> float:
+    """How far (mm) ``pose`` puts the robot's centroid from the camera."""
+    centroid = estimator.robot.centroid(estimator.robot.surface_points(frame.joints[None])[0])
+    return 1000.0 * float(np.linalg.norm(pose[:3, :3] @ centroid + pose[:3, 3]))
+
+
 def line_of_sight_mm(estimator, frame, pose: np.ndarray) -> float:
     """Estimated minus true distance (mm) of the robot's centroid from the camera."""
     if not np.isfinite(pose).all():
         return float("nan")
-    centroid = estimator.robot.centroid(estimator.robot.surface_points(frame.joints[None])[0])
-    distance = [np.linalg.norm(p[:3, :3] @ centroid + p[:3, 3]) for p in (pose, frame.pose)]
-    return 1000.0 * float(distance[0] - distance[1])
-
-
-def distance_mm(estimator, frame) -> float:
-    centroid = estimator.robot.centroid(estimator.robot.surface_points(frame.joints[None])[0])
-    return 1000.0 * float(np.linalg.norm(frame.pose[:3, :3] @ centroid + frame.pose[:3, 3]))
+    return centroid_distance_mm(estimator, frame, pose) - centroid_distance_mm(estimator, frame, frame.pose)
 
 
 def refined(estimator, frame, view: ViewEvidence, edges: bool, inner: bool, weighted: bool) -> np.ndarray:
@@ -76,13 +75,8 @@ def refined(estimator, frame, view: ViewEvidence, edges: bool, inner: bool, weig
     args = (estimator.renderer, frame.joints, frame.pose[None])
     if weighted:
         return fitting.refine_coarse_to_fine(*args, view, kp_base, edges=edges, inner_edges=inner)[0]
-    share = fitting.MASK_SHARE_WITH_EDGES
-    fitting.MASK_SHARE_WITH_EDGES = 0.0
-    try:
-        alone = dataclasses.replace(view, confidence=view.confidence * 0)
-        return fitting.refine_poses(*args, alone, kp_base, edges=True)[0]
-    finally:
-        fitting.MASK_SHARE_WITH_EDGES = share
+    alone = dataclasses.replace(view, confidence=view.confidence * 0)
+    return fitting.refine_poses(*args, alone, kp_base, edges=True, mask_share=0.0)[0]
 
 
 def synthetic_views(estimator, frame, view: ViewEvidence) -> dict[str, ViewEvidence]:
@@ -111,7 +105,7 @@ def measure_folder(estimator, folder: str, limit: int) -> dict:
     for i in tqdm(range(min(limit, len(frames))), desc=Path(folder).name):
         frame = frames[i]
         image = frame.load_image()
-        distances.append(distance_mm(estimator, frame))
+        distances.append(centroid_distance_mm(estimator, frame, frame.pose))
         fit = fitting.fit_pose(estimator.parser, estimator.renderer, estimator.robot, image, frame.K, frame.joints)
         errors["fit"].append(line_of_sight_mm(estimator, frame, fit.pose))
         view = view_around(estimator.parser, estimator.robot, image, frame.K, frame.joints, frame.pose)

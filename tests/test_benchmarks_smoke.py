@@ -264,7 +264,8 @@ def test_depth_bias_reads_the_line_of_sight_and_runs_small(tmp_path: Path, tiny_
     further = frame.pose.copy()
     further[:3, 3] += 0.01 * (frame.pose[:3, :3] @ estimator.robot.centroid(
         estimator.robot.surface_points(frame.joints[None])[0]) + frame.pose[:3, 3])  # fmt: skip
-    assert bias.line_of_sight_mm(estimator, frame, further) == pytest.approx(0.01 * bias.distance_mm(estimator, frame))
+    expected = 0.01 * bias.centroid_distance_mm(estimator, frame, frame.pose)
+    assert bias.line_of_sight_mm(estimator, frame, further) == pytest.approx(expected)
 
 
 def test_sequences_compare_the_track_with_single_frames_on_their_frames() -> None:

@@ -13,6 +13,7 @@ from monose3.geometry.camera import (
     crop_boxes,
     crop_images,
     crop_intrinsics,
+    inside_image,
     intrinsics_matrix,
     project,
     standardize_image,
@@ -275,3 +276,8 @@ def test_projection_jacobian_matches_finite_differences():
         step[axis] = 1e-6
         numeric = (project(points + step, K) - project(points - step, K)) / 2e-6
         assert torch.allclose(jac[..., axis], numeric, atol=1e-4)
+
+
+def test_inside_image_includes_the_border_pixels_outer_edges():
+    uv = np.array([[-0.5, -0.5], [639.5, 479.5], [-0.51, 10.0], [10.0, 479.51], [320.0, 240.0]])
+    assert inside_image(uv, (640, 480)).tolist() == [True, True, False, False, True]

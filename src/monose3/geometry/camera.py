@@ -138,6 +138,12 @@ def project(points, K):
     return points[..., :2] / z * focal + K[..., None, :2, 2]
 
 
+def inside_image(uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Whether each pixel position ``uv`` ``[..., 2]`` (pixel centres at integers) lies in an
+    image of ``size`` (w, h), the border pixels' outer edges included."""
+    return (uv >= -0.5).all(-1) & (uv <= np.asarray(size, float) - 0.5).all(-1)
+
+
 def projection_jacobian(points, K):
     """d(pixel)/d(point) ``[..., N, 2, 3]`` of :func:`project` at camera-frame points ``[..., N, 3]``
     with K ``[..., 3, 3]`` (torch); depths clamped as :func:`project` clamps them."""

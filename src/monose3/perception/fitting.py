@@ -135,14 +135,16 @@ def fit_scores(ious: np.ndarray, kp_errors: np.ndarray, view: ViewEvidence) -> n
 
 
 def refine_poses(renderer: RobotRenderer, joints: np.ndarray, poses: np.ndarray, view: ViewEvidence,
-                 keypoints_base: np.ndarray, iterations: int = REFINE_ITERATIONS,
-                 edges: bool = False, inner_edges: bool = False) -> np.ndarray:  # fmt: skip
+                 keypoints_base: np.ndarray, iterations: int = REFINE_ITERATIONS, edges: bool = False,
+                 inner_edges: bool = False, mask_share: float | None = None) -> np.ndarray:  # fmt: skip
     """Silhouette + keypoint refinement of ``poses`` ``[H, 4, 4]`` (see the module's step 4), and
     with ``edges`` the image's edges too (step 6; a view without pixels has none), for the
-    outline and, with ``inner_edges``, for the robot's inner edges."""
+    outline and, with ``inner_edges``, for the robot's inner edges. The mask's terms weigh
+    ``mask_share`` of their weight (default :data:`MASK_SHARE_WITH_EDGES` with edges, else all)."""
     edges = edges and view.image is not None
     inner_edges = inner_edges and edges
-    mask_share = MASK_SHARE_WITH_EDGES if edges else 1.0
+    if mask_share is None:
+        mask_share = MASK_SHARE_WITH_EDGES if edges else 1.0
     target = Outline((view.mask > MASK_THRESHOLD).numpy(), view.valid)
     scale = OUTLINE_SCALE * view.size[0]
     rng = np.random.default_rng(0)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from monose3.geometry.camera import project
+from monose3.geometry.camera import inside_image, project
 from monose3.geometry.poses import transform_points
 from monose3.perception.fit_result import Fit
 from monose3.robot import RobotModel
@@ -150,9 +150,7 @@ def inside_fraction(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: 
     if not np.isfinite(pose).all():
         return 0.0
     cam = transform_points(pose, robot.surface_points(joints[None])[0])
-    u, v = project(cam, K).T
-    h, w = image_shape[:2]
-    return float(np.mean((cam[:, 2] > 0) & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)))
+    return float(np.mean((cam[:, 2] > 0) & inside_image(project(cam, K), image_shape[1::-1])))
 
 
 def depth_per_pixel_mm(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.ndarray) -> float:
@@ -249,8 +247,4 @@ def pose_in_view(robot: RobotModel, pose: np.ndarray, joints: np.ndarray, K: np.
     if not np.isfinite(pose).all():
         return False
     cam = transform_points(pose, robot.centroid(robot.surface_points(joints[None])))[0]
-    if cam[2] <= 0:
-        return False
-    u, v = project(cam[None], K)[0]
-    h, w = image_shape[:2]
-    return bool(-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5)
+    return bool(cam[2] > 0 and inside_image(project(cam[None], K)[0], image_shape[1::-1]))

@@ -28,7 +28,7 @@ from monose3.data.scenes.profiles import SceneProfile, get_profile
 from monose3.data.scenes.sampling import frame_rng, sample_scene
 from monose3.data.scenes.writer import make_renderer
 from monose3.errors import Monose3Error
-from monose3.geometry.camera import project
+from monose3.geometry.camera import inside_image, project
 from monose3.geometry.poses import make_pose, transform_points
 from monose3.geometry.rotations import euler_xyz_to_matrix
 from monose3.robot import RobotModel, RobotSpec
@@ -58,7 +58,10 @@ class SequenceConfig:
 
 def in_view_fraction(model: RobotModel, joints: np.ndarray, pose: np.ndarray, K: np.ndarray, size) -> float:
     """Share of the robot's surface points inside the image (0 if any comes within 10 cm of the lens)."""
-    cam = transform_points(pose, model.surface_points(joints[None])[0])
+    return _visible_share(transform_points(pose, model.surface_points(joints[None])[0]), K, size)
+
+
+def _visible_share(cam: np.ndarray, K: np.ndarray, size) -> float:
     if cam[:, 2].min() < 0.1:
         return 0.0
     u, v = project(cam, K).T
@@ -121,10 +124,10 @@ def frame_in_view(model: RobotModel, joints: np.ndarray, pose: np.ndarray, K: np
     """Whether a frame shows the profile's ``min_visible`` share of the robot with its centroid
     inside the image: where the centroid leaves it, an estimate counts as out of view, however
     good (``reliability.pose_in_view``)."""
-    if in_view_fraction(model, joints, pose, K, size) < profile.min_visible:
+    surface = model.surface_points(joints[None])[0]
+    if _visible_share(transform_points(pose, surface), K, size) < profile.min_visible:
         return False
-    u, v = project(transform_points(pose, model.centroid(model.surface_points(joints[None])))[0][None], K)[0]
-    return bool(-0.5 <= u <= size[0] - 0.5 and -0.5 <= v <= size[1] - 0.5)
+    return bool(inside_image(project(transform_points(pose, model.centroid(surface)[None]), K)[0], size))
 
 
 def sequence_background(rng: np.random.Generator, profile: SceneProfile, size: tuple[int, int], first_render,
