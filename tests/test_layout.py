@@ -38,7 +38,7 @@ LAYERS = (
     ("method", "perception"),
     ("estimator", "tracking"),
     ("training", "report"),
-    ("apps", "api", "calibration", "__init__", "__main__"),
+    ("apps", "api", "calibration", "adaptation", "__init__", "__main__"),
 )
 RANK = {name: rank for rank, names in enumerate(LAYERS) for name in names}
 LAYER_NAME = {name: "/".join(names) for names in LAYERS for name in names}

@@ -240,6 +240,7 @@ def estimate_frames(
     skipped: list[dict],
     progress: bool,
     sampler: str | None = None,
+    desc: str = "calibrate",
 ) -> tuple[list, list[FrameResult]]:
     """Single-frame estimates of every readable frame, ``batch_size`` at a time; unreadable
     frames are appended to ``skipped``. Returns the frames used and their results."""
@@ -249,7 +250,7 @@ def estimate_frames(
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(frames), desc="calibrate", unit="frame")
+        bar = tqdm(total=len(frames), desc=desc, unit="frame")
     for b, first in enumerate(range(0, len(frames), batch_size)):
         chunk = [frames[i] for i in range(first, min(first + batch_size, len(frames)))]
         batch, images = load_images(chunk, skipped)

@@ -62,3 +62,50 @@ def check_parser_file(path: str | None) -> None:
     """A ``--parser`` that does not exist is refused before any model loads."""
     if path is not None and not Path(path).exists():
         raise Monose3Error(f"robot parser weights not found: {path}; pass an existing file or omit --parser")
+
+
+# ---- adapting the parser to the user's frames (adapt, calibrate --adapt, track --adapt) ----------
+
+ADAPTED_PARSER_FILE = "adapted_parser.pt"
+
+
+def add_adapt_budget(p: argparse.ArgumentParser) -> None:
+    """How long the parser's adaptation trains: steps, capped by minutes (AdaptConfig's defaults)."""
+    p.add_argument("--adapt-steps", type=int, help="the adaptation's fine-tuning steps (default 90: ~3 min on 2 cores)")
+    p.add_argument("--adapt-minutes", type=float, help="stop the fine-tuning after this many minutes (default 4)")
+
+
+def add_adapt_option(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument(
+        "--adapt",
+        action="store_true",
+        help=f"first adapt the parser to these frames (a few minutes; kept only when it fits held-out frames better, "
+        f"then saved as {ADAPTED_PARSER_FILE} in --out) and {what} with it",
+    )
+    add_adapt_budget(p)
+
+
+def check_adapt_budget(args: argparse.Namespace) -> None:
+    if args.adapt_steps is not None:
+        v.check_count(args.adapt_steps, "--adapt-steps")
+    if args.adapt_minutes is not None and not args.adapt_minutes > 0:
+        raise Monose3Error(f"--adapt-minutes must be positive, got {args.adapt_minutes}")
+
+
+def adapt_config(args: argparse.Namespace):
+    """The adaptation's configuration with the command line's budget."""
+    from monose3.adaptation import AdaptConfig
+
+    budget = {k: getattr(args, f"adapt_{k}") for k in ("steps", "minutes") if getattr(args, f"adapt_{k}") is not None}
+    return AdaptConfig(**budget)
+
+
+def adapt_before(estimator, frames: list, static_camera: bool, args: argparse.Namespace, out: Path) -> Path | None:
+    """``--adapt``: adapt ``estimator``'s parser to ``frames`` in place (when the guard keeps it)
+    and save it in ``out``; the saved file, or None when the parser stayed as it was."""
+    from monose3.adaptation import adapt_parser, save_adapted_parser
+
+    print(f"adapting the parser to {len(frames)} frames")
+    result = adapt_parser(estimator, frames, adapt_config(args), static_camera, progress=True)
+    print(result.verdict)
+    return save_adapted_parser(result, out / ADAPTED_PARSER_FILE) if result.adapted else None

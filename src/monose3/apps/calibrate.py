@@ -49,7 +49,10 @@ import yaml
 from monose3 import atomic
 from monose3.apps.arguments import (
     DEVICE_HELP,
+    adapt_before,
+    add_adapt_option,
     add_model_arguments,
+    check_adapt_budget,
     check_non_negative,
     check_parser_file,
     robot_model,
@@ -86,6 +89,7 @@ def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
         help="reject frames beyond median + k * sigma_MAD of the residuals to the first robust fusion (default 3)",
     )
     p.add_argument("--overlay-frames", type=int, default=6, help="frames in the overlay grid (default 6; 0: none)")
+    add_adapt_option(p, "calibrate")
 
 
 def check_calibrate(args: argparse.Namespace) -> SimpleNamespace:
@@ -95,6 +99,7 @@ def check_calibrate(args: argparse.Namespace) -> SimpleNamespace:
     if args.limit is not None:
         v.check_count(args.limit, "--limit")
     check_non_negative(args.overlay_frames, "--overlay-frames")
+    check_adapt_budget(args)
     if not args.consensus_k > 0:
         raise Monose3Error(f"--consensus-k must be positive, got {args.consensus_k}")
     v.check_input_dir(args.frames, "--frames")
@@ -105,6 +110,10 @@ def check_calibrate(args: argparse.Namespace) -> SimpleNamespace:
         frames = load_frames(args.frames, robot)
         if args.limit is not None:
             frames = frames[: args.limit]
+        if args.adapt:
+            from monose3.adaptation import check_frame_count
+
+            check_frame_count(len(frames))
     return SimpleNamespace(chains=chains, out=out, frames=frames)
 
 
@@ -192,6 +201,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if frames is None:
             frames = load_frames(args.frames, estimator.robot)
             frames = frames[: args.limit] if args.limit is not None else frames
+        adapted = adapt_before(estimator, list(frames), True, args, checked.out) if args.adapt else None
         print(f"calibrating from {len(frames)} frames of {args.frames}")
         result = calibrate(
             estimator,
@@ -207,7 +217,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         estimator.close()
     out = checked.out
     json_path, yaml_path = write_calibration_files(result, out)
-    written = [json_path, yaml_path]
+    written = [json_path, yaml_path, *([adapted] if adapted else [])]
     if grid is not None:
         written.append(save_image(out / "calibration_overlay.png", grid))
     print(format_report(result))

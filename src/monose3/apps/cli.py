@@ -22,6 +22,7 @@ COMMANDS = {
     "estimate": ("monose3.apps.estimate", "estimate camera-from-base from one image, joints and intrinsics"),
     "calibrate": ("monose3.apps.calibrate", "fuse estimates over many frames from a static camera"),
     "track": ("monose3.apps.track", "track the pose over a sequence of frames or a video"),
+    "adapt": ("monose3.apps.adapt", "fine-tune the robot parser on your own frames (no labels needed)"),
     "generate": ("monose3.apps.generate", "generate domain-randomised synthetic data in DREAM format"),
     "train": ("monose3.apps.train", "train the denoising network on DREAM folders or scenes synthesised on the fly"),
     "train-parser": (

@@ -42,6 +42,9 @@ from monose3.apps.arguments import (
     DEVICE_HELP,
     PARSER_HELP,
     ROBOT_HELP,
+    adapt_before,
+    add_adapt_option,
+    check_adapt_budget,
     check_parser_file,
     robot_model,
 )
@@ -115,6 +118,7 @@ def add_track_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gif-every", type=int, default=1, help="put every N-th frame in track.gif (default 1; 0: no GIF)")
     p.add_argument("--fps", type=float, default=10.0, help="frame rate of track.gif (default 10)")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
+    add_adapt_option(p, "track")
 
 
 def check_track_args(args: argparse.Namespace) -> None:
@@ -128,6 +132,9 @@ def check_track_args(args: argparse.Namespace) -> None:
     if not args.fps > 0:
         raise Monose3Error(f"--fps must be positive, got {args.fps}")
     v.check_count(args.recheck_every, "--recheck-every")
+    check_adapt_budget(args)
+    if args.adapt and args.frames is None:
+        raise Monose3Error("--adapt needs --frames (a folder of frames); for a video, adapt with `monose3 adapt` first")
     if args.refine_at_end and not args.static_camera:
         raise Monose3Error("--refine-at-end goes with --static-camera (it gives earlier frames the fused camera pose)")
     if args.frames is not None:
@@ -157,6 +164,10 @@ def check_track(args: argparse.Namespace) -> SimpleNamespace:
             frames = frames[: args.limit] if args.limit is not None else frames
             if args.static_camera:
                 check_one_camera(frames)
+            if args.adapt:
+                from monose3.adaptation import check_frame_count
+
+                check_frame_count(len(frames))
     else:
         camera = load_camera(args.camera)
         v.check_K(camera.K, camera.size, args.camera)
@@ -226,6 +237,7 @@ def run_track(args: argparse.Namespace) -> int:
         if frames is None:
             frames = _frames_for(args, estimator.robot)  # inputs checked before any output is written
         skipped.extend(skipped_annotations(frames))
+        adapted = adapt_before(estimator, list(frames), args.static_camera, args, out) if args.adapt else None
 
         def on_frame(frame, image: np.ndarray, result: TrackFrame) -> None:
             if args.gif_every and result.index % args.gif_every == 0:
@@ -237,7 +249,7 @@ def run_track(args: argparse.Namespace) -> int:
             print(f"--refine-at-end: {changed} earlier frame(s) given the final fused pose")
     finally:
         estimator.close()
-    written = write_outputs(out, results, tracker.fusion)
+    written = write_outputs(out, results, tracker.fusion) + ([adapted] if adapted else [])
     if tiles:
         written.append(_save_gif(tiles, out / "track.gif", args.fps))
     if skipped:

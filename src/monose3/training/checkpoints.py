@@ -130,7 +130,12 @@ def export_parser(shards: str | Path, out: str | Path) -> Path:
     from monose3.training.shards import read_shards
 
     state, meta = read_shards(shards)
-    weights = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
-    keep = {k: meta[k] for k in ("kind", "parser", "step", "samples")}
-    save_checkpoint(out, {"model": weights, "robot": meta["parser"]["robot"], **keep})
+    return save_parser(state, out, {k: meta[k] for k in ("kind", "parser", "step", "samples")})
+
+
+def save_parser(state: dict[str, torch.Tensor], out: str | Path, meta: dict[str, Any]) -> Path:
+    """A parser's weights ``state`` as the fp16 file :func:`load_parser` reads, written atomically;
+    ``meta`` holds ``kind`` and ``parser`` (its configuration) and whatever else describes it."""
+    weights = {k: v.detach().cpu().half() if v.is_floating_point() else v.detach().cpu() for k, v in state.items()}
+    save_checkpoint(out, {"model": weights, "robot": meta["parser"]["robot"], **meta})
     return Path(out)

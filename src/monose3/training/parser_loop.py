@@ -94,12 +94,14 @@ def parser_losses(model: torch.nn.Module, batch: ParserBatch, config: ParserConf
     }
 
 
-def _optimizer(model: RobotParser, config: ParserConfig) -> torch.optim.Optimizer:
+def parser_optimizer(model: RobotParser, lr: float) -> torch.optim.Optimizer:
+    """AdamW with the pretrained trunk's learning rate scaled by :data:`TRUNK_LR_SCALE` (each
+    group's ``scale``: a schedule sets ``lr * scale``)."""
     trunk = list(model.trunk.parameters())
     trunk_ids = {id(p) for p in trunk}
     rest = [p for p in model.parameters() if id(p) not in trunk_ids]
     groups = [{"params": trunk, "scale": TRUNK_LR_SCALE}, {"params": rest, "scale": 1.0}]
-    return torch.optim.AdamW(groups, lr=config.lr, weight_decay=1e-4)
+    return torch.optim.AdamW(groups, lr=lr, weight_decay=1e-4)
 
 
 def train_parser(
@@ -130,7 +132,7 @@ def train_parser(
     else:
         model = RobotParser(config)
     model = model.to(device)
-    optimizer = _optimizer(model, config)
+    optimizer = parser_optimizer(model, config.lr)
     maker = ParserBatchMaker(config, device, step, workers, backgrounds)
     amp = (lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if device.type == "cuda" else nullcontext
     log = CsvTensorBoardLog(out, step, PARSER_LOG_FIELDS)
