@@ -251,7 +251,10 @@ def adapt_parser(estimator, frames: Sequence, config: AdaptConfig | None = None,
     after = None
     if steps > 0:
         estimator.parser = adapted
-        after = held_out_fits(estimator, held_images, held_out, config.batch_size)
+        try:
+            after = held_out_fits(estimator, held_images, held_out, config.batch_size)
+        finally:  # an interrupted check leaves the estimator as it was
+            estimator.parser = original
     keep = after is not None and guard_keeps(before, after)
     estimator.parser = adapted if keep else original
     seconds["check"] = time.perf_counter() - clock

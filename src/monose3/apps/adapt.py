@@ -14,13 +14,14 @@ Input folder (``--frames DIR``): the plain folder of ``monose3 calibrate``
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from monose3.apps.arguments import (
     CHECKPOINT_HELP,
     DEVICE_HELP,
     PARSER_HELP,
     ROBOT_HELP,
-    adapt_config,
+    adapt_and_save,
     add_adapt_budget,
     check_adapt_budget,
     check_parser_file,
@@ -28,7 +29,6 @@ from monose3.apps.arguments import (
 )
 from monose3.data import validation as v
 from monose3.data.frames import load_frames
-from monose3.errors import Monose3Error
 from monose3.training.formats import check_checkpoint
 
 
@@ -71,22 +71,17 @@ def checked_frames(args: argparse.Namespace, robot) -> list:
 
 
 def run_adapt(args: argparse.Namespace) -> int:
-    from monose3.adaptation import adapt_parser, save_adapted_parser
     from monose3.api import load_estimator
 
     frames = getattr(args, "checked_inputs", None) or check_adapt(args)  # inputs read before the model loads
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device, parser=args.parser)
-    if estimator.parser is None:
-        raise Monose3Error(f"no robot parser for {estimator.robot.name} to adapt; pass one with --parser FILE")
     try:
         frames = frames or checked_frames(args, estimator.robot)
-        print(f"adapting the parser to {len(frames)} frames of {args.frames}")
-        result = adapt_parser(estimator, frames, adapt_config(args), args.static_camera, progress=True)
+        saved = adapt_and_save(estimator, frames, args.static_camera, args, Path(args.out))
     finally:
         estimator.close()
-    print(result.verdict)
-    if not result.adapted:
+    if saved is None:
         print(f"nothing written: estimate with the parser you started from (not {args.out})")
-        return 0
-    print(f"wrote {save_adapted_parser(result, args.out)}; use it with --parser {args.out}")
+    else:
+        print(f"wrote {saved}; use it with --parser {saved}")
     return 0

@@ -100,12 +100,12 @@ def adapt_config(args: argparse.Namespace):
     return AdaptConfig(**budget)
 
 
-def adapt_before(estimator, frames: list, static_camera: bool, args: argparse.Namespace, out: Path) -> Path | None:
-    """``--adapt``: adapt ``estimator``'s parser to ``frames`` in place (when the guard keeps it)
-    and save it in ``out``; the saved file, or None when the parser stayed as it was."""
+def adapt_and_save(estimator, frames: list, static_camera: bool, args: argparse.Namespace, path: Path) -> Path | None:
+    """Adapt ``estimator``'s parser to ``frames`` in place (when the guard keeps it) and save it
+    to ``path``; the saved file, or None when the parser stayed as it was (nothing written)."""
     from monose3.adaptation import adapt_parser, save_adapted_parser
 
     print(f"adapting the parser to {len(frames)} frames")
     result = adapt_parser(estimator, frames, adapt_config(args), static_camera, progress=True)
     print(result.verdict)
-    return save_adapted_parser(result, out / ADAPTED_PARSER_FILE) if result.adapted else None
+    return save_adapted_parser(result, path) if result.adapted else None

@@ -48,8 +48,9 @@ import yaml
 
 from monose3 import atomic
 from monose3.apps.arguments import (
+    ADAPTED_PARSER_FILE,
     DEVICE_HELP,
-    adapt_before,
+    adapt_and_save,
     add_adapt_option,
     add_model_arguments,
     check_adapt_budget,
@@ -201,7 +202,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if frames is None:
             frames = load_frames(args.frames, estimator.robot)
             frames = frames[: args.limit] if args.limit is not None else frames
-        adapted = adapt_before(estimator, list(frames), True, args, checked.out) if args.adapt else None
+        adapted = None
+        if args.adapt:
+            adapted = adapt_and_save(estimator, list(frames), True, args, checked.out / ADAPTED_PARSER_FILE)
         print(f"calibrating from {len(frames)} frames of {args.frames}")
         result = calibrate(
             estimator,

@@ -38,11 +38,12 @@ import cv2
 import numpy as np
 
 from monose3.apps.arguments import (
+    ADAPTED_PARSER_FILE,
     CHECKPOINT_HELP,
     DEVICE_HELP,
     PARSER_HELP,
     ROBOT_HELP,
-    adapt_before,
+    adapt_and_save,
     add_adapt_option,
     check_adapt_budget,
     check_parser_file,
@@ -237,7 +238,9 @@ def run_track(args: argparse.Namespace) -> int:
         if frames is None:
             frames = _frames_for(args, estimator.robot)  # inputs checked before any output is written
         skipped.extend(skipped_annotations(frames))
-        adapted = adapt_before(estimator, list(frames), args.static_camera, args, out) if args.adapt else None
+        adapted = None
+        if args.adapt:
+            adapted = adapt_and_save(estimator, list(frames), args.static_camera, args, out / ADAPTED_PARSER_FILE)
 
         def on_frame(frame, image: np.ndarray, result: TrackFrame) -> None:
             if args.gif_every and result.index % args.gif_every == 0:
