@@ -108,6 +108,8 @@ def test_a_harmful_fine_tuning_is_refused_and_the_parser_kept(estimator, scene_f
     assert not result.adapted and estimator.parser is original and result.parser is original
     assert "kept the original parser" in result.verdict
     assert result.after["median_iou_plus_support"] < result.before["median_iou_plus_support"]
+    assert result.picture is not None and result.picture.shape[2] == 3  # the held-out frame, before | after
+    assert result.picture.shape[1] > 2 * result.picture.shape[0]
     # The parser that stays was not touched by the fine-tuning of its copy.
     assert torch.equal(parse_image(original, frames[1].load_image(), frames[1].K).mask, reference)
 
@@ -119,9 +121,9 @@ def test_adapt_command_writes_a_parser_only_when_kept(scene_folder, tmp_path, ca
     printed = capsys.readouterr().out
     assert rc == 0 and "held-out frames: reliable" in printed
     if "kept the adapted parser" in printed:
-        assert load_parser(out).config.input_size == SIZE
+        assert load_parser(out).config.input_size == SIZE and out.with_suffix(".png").exists()
     else:
-        assert not out.exists() and "nothing written" in printed
+        assert not out.exists() and not out.with_suffix(".png").exists() and "nothing written" in printed
 
 
 @pytest.mark.slow
@@ -132,7 +134,8 @@ def test_calibrate_and_track_adapt_first(command, scene_folder, tmp_path, capsys
     rc = main([command, "--frames", str(scene_folder), "--out", str(out), "--adapt", "--adapt-steps", "1", *extra])
     printed = capsys.readouterr().out
     assert rc == 0 and "adapting the parser to 6 frames" in printed and "held-out frames: reliable" in printed
-    assert (out / ADAPTED_PARSER_FILE).exists() == ("kept the adapted parser" in printed)
+    kept = "kept the adapted parser" in printed
+    assert (out / ADAPTED_PARSER_FILE).exists() == kept == (out / ADAPTED_PARSER_FILE).with_suffix(".png").exists()
     assert (out / ("calibration.json" if command == "calibrate" else "poses.jsonl")).exists()
 
 

@@ -36,12 +36,15 @@ from monose3.errors import Monose3Error
 from monose3.geometry.averaging import pose_residuals, robust_consensus
 from monose3.perception.config import PARSER_KIND
 from monose3.perception.parser import RobotParser
+from monose3.report.overlays import image_grid, pose_overlays
 from monose3.training.checkpoints import save_parser
 from monose3.training.parser_loop import ParserBatch, ParserBatchMaker, parser_losses, parser_optimizer
 from monose3.training.scene_views import LabelledFrame, SceneViews
 
 LABELS_FUSED = "fused"  # every frame at the static camera's fused pose
 LABELS_PER_FRAME = "per-frame"  # each reliable frame at its own fit
+PICTURE_FRAMES = 4  # held-out frames in the picture of the guard's check
+PICTURE_TILE_WIDTH = 400
 
 
 @dataclass(frozen=True)
@@ -100,6 +103,7 @@ class AdaptResult:
     steps: int
     seconds: dict[str, float] = field(default_factory=dict)
     skipped: list[dict] = field(default_factory=list)
+    picture: np.ndarray | None = None  # held-out frames fitted before (left) and after (right)
 
     @property
     def verdict(self) -> str:
@@ -171,6 +175,30 @@ def held_out_fits(estimator, images: list[np.ndarray], frames: Sequence, batch_s
         reliable.append(est.reliable)
         quality.append(np.where(est.found, np.nan_to_num(est.fit_iou) + np.nan_to_num(est.edge_support), 0.0))
     return HeldOutFits(np.concatenate(poses), np.concatenate(reliable), np.concatenate(quality))
+
+
+def check_picture(renderer, frames: Sequence, images: list[np.ndarray], before: HeldOutFits,
+                  after: HeldOutFits) -> np.ndarray | None:  # fmt: skip
+    """Up to :data:`PICTURE_FRAMES` held-out frames as the guard saw them: the robot at each
+    frame's fit with the original parser (left) and the adapted one (right); None when no frame
+    was fitted both times."""
+    both = [i for i in range(len(frames)) if np.isfinite(before.poses[i]).all() and np.isfinite(after.poses[i]).all()]
+    picks = both[:: max(1, len(both) // PICTURE_FRAMES)][:PICTURE_FRAMES]
+    if not picks:
+        return None
+    label = lambda fits, i, when: (  # noqa: E731
+        f"{frames[i].name} {when}: IoU + support {fits.quality[i]:.2f}, {'' if fits.reliable[i] else 'UN'}RELIABLE"
+    )
+    tiles = pose_overlays(
+        renderer,
+        [images[i] for i in picks for _ in range(2)],
+        [frames[i].K for i in picks for _ in range(2)],
+        [frames[i].joints for i in picks for _ in range(2)],
+        [pose for i in picks for pose in (before.poses[i], after.poses[i])],
+        [text for i in picks for text in (label(before, i, "before"), label(after, i, "adapted"))],
+        max_width=PICTURE_TILE_WIDTH,
+    )
+    return image_grid(tiles, cols=2, pad=4, background=255)
 
 
 def guard_keeps(before: HeldOutFits, after: HeldOutFits) -> bool:
@@ -257,6 +285,7 @@ def adapt_parser(estimator, frames: Sequence, config: AdaptConfig | None = None,
             estimator.parser = original
     keep = after is not None and guard_keeps(before, after)
     estimator.parser = adapted if keep else original
+    picture = None if after is None else check_picture(estimator.renderer, held_out, held_images, before, after)
     seconds["check"] = time.perf_counter() - clock
     return AdaptResult(
         parser=estimator.parser,
@@ -270,6 +299,7 @@ def adapt_parser(estimator, frames: Sequence, config: AdaptConfig | None = None,
         steps=steps,
         seconds=seconds,
         skipped=skipped,
+        picture=picture,
     )
 
 

@@ -77,11 +77,11 @@ def run_adapt(args: argparse.Namespace) -> int:
     estimator = load_estimator(args.checkpoint, robot=args.robot, device=args.device, parser=args.parser)
     try:
         frames = frames or checked_frames(args, estimator.robot)
-        saved = adapt_and_save(estimator, frames, args.static_camera, args, Path(args.out))
+        written = adapt_and_save(estimator, frames, args.static_camera, args, Path(args.out))
     finally:
         estimator.close()
-    if saved is None:
+    if not written:
         print(f"nothing written: estimate with the parser you started from (not {args.out})")
     else:
-        print(f"wrote {saved}; use it with --parser {saved}")
+        print(f"wrote {', '.join(map(str, written))}; use the parser with --parser {written[0]}")
     return 0

@@ -100,12 +100,19 @@ def adapt_config(args: argparse.Namespace):
     return AdaptConfig(**budget)
 
 
-def adapt_and_save(estimator, frames: list, static_camera: bool, args: argparse.Namespace, path: Path) -> Path | None:
+def adapt_and_save(estimator, frames: list, static_camera: bool, args: argparse.Namespace, path: Path) -> list[Path]:
     """Adapt ``estimator``'s parser to ``frames`` in place (when the guard keeps it) and save it
-    to ``path``; the saved file, or None when the parser stayed as it was (nothing written)."""
+    to ``path``, with the picture of the guard's check beside it (``.png``); the files written
+    (none when the parser stayed as it was)."""
     from monose3.adaptation import adapt_parser, save_adapted_parser
+    from monose3.report.overlays import save_image
 
     print(f"adapting the parser to {len(frames)} frames")
     result = adapt_parser(estimator, frames, adapt_config(args), static_camera, progress=True)
     print(result.verdict)
-    return save_adapted_parser(result, path) if result.adapted else None
+    if not result.adapted:
+        return []
+    written = [save_adapted_parser(result, path)]
+    if result.picture is not None:
+        written.append(save_image(path.with_suffix(".png"), result.picture))
+    return written

@@ -202,7 +202,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if frames is None:
             frames = load_frames(args.frames, estimator.robot)
             frames = frames[: args.limit] if args.limit is not None else frames
-        adapted = None
+        adapted = []
         if args.adapt:
             adapted = adapt_and_save(estimator, list(frames), True, args, checked.out / ADAPTED_PARSER_FILE)
         print(f"calibrating from {len(frames)} frames of {args.frames}")
@@ -220,7 +220,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         estimator.close()
     out = checked.out
     json_path, yaml_path = write_calibration_files(result, out)
-    written = [json_path, yaml_path, *([adapted] if adapted else [])]
+    written = [json_path, yaml_path, *adapted]
     if grid is not None:
         written.append(save_image(out / "calibration_overlay.png", grid))
     print(format_report(result))

@@ -238,7 +238,7 @@ def run_track(args: argparse.Namespace) -> int:
         if frames is None:
             frames = _frames_for(args, estimator.robot)  # inputs checked before any output is written
         skipped.extend(skipped_annotations(frames))
-        adapted = None
+        adapted = []
         if args.adapt:
             adapted = adapt_and_save(estimator, list(frames), args.static_camera, args, out / ADAPTED_PARSER_FILE)
 
@@ -252,7 +252,7 @@ def run_track(args: argparse.Namespace) -> int:
             print(f"--refine-at-end: {changed} earlier frame(s) given the final fused pose")
     finally:
         estimator.close()
-    written = write_outputs(out, results, tracker.fusion) + ([adapted] if adapted else [])
+    written = write_outputs(out, results, tracker.fusion) + adapted
     if tiles:
         written.append(_save_gif(tiles, out / "track.gif", args.fps))
     if skipped:
