@@ -117,7 +117,8 @@ def test_a_harmful_fine_tuning_is_refused_and_the_parser_kept(estimator, scene_f
 @pytest.mark.slow
 def test_adapt_command_writes_a_parser_only_when_kept(scene_folder, tmp_path, capsys):
     out = tmp_path / "adapted.pt"
-    rc = main(["adapt", "--frames", str(scene_folder), "--out", str(out), "--static-camera", "--adapt-steps", "2"])
+    rc = main(["adapt", "--frames", str(scene_folder), "--out", str(out), "--static-camera", "--adapt-steps", "2",
+               "--limit", "4"])  # fmt: skip
     printed = capsys.readouterr().out
     assert rc == 0 and "held-out frames: reliable" in printed
     if "kept the adapted parser" in printed:
@@ -131,9 +132,10 @@ def test_adapt_command_writes_a_parser_only_when_kept(scene_folder, tmp_path, ca
 def test_calibrate_and_track_adapt_first(command, scene_folder, tmp_path, capsys):
     out = tmp_path / command
     extra = ["--gif-every", "0", "--static-camera"] if command == "track" else ["--overlay-frames", "0"]
-    rc = main([command, "--frames", str(scene_folder), "--out", str(out), "--adapt", "--adapt-steps", "1", *extra])
+    args = ["--frames", str(scene_folder), "--out", str(out), "--limit", "4", "--adapt", "--adapt-steps", "1"]
+    rc = main([command, *args, *extra])
     printed = capsys.readouterr().out
-    assert rc == 0 and "adapting the parser to 6 frames" in printed and "held-out frames: reliable" in printed
+    assert rc == 0 and "adapting the parser to 4 frames" in printed and "held-out frames: reliable" in printed
     kept = "kept the adapted parser" in printed
     assert (out / ADAPTED_PARSER_FILE).exists() == kept == (out / ADAPTED_PARSER_FILE).with_suffix(".png").exists()
     assert (out / ("calibration.json" if command == "calibrate" else "poses.jsonl")).exists()
