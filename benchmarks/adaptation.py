@@ -58,7 +58,7 @@ def scores(estimator, frames) -> dict:
     """Every frame alone and the fused pose, against ground truth."""
     result = calibrate(estimator, frames)
     adds = np.array([r.add_single_mm for r in result.frames], float)
-    truth = np.stack([f.pose for f in frames])[0]
+    truth = np.asarray(frames[0].pose)  # a static camera: one true pose
     error = result.camera_from_base[:3, 3] - truth[:3, 3]
     sight = truth[:3, 3] / np.linalg.norm(truth[:3, 3])
     return {
